@@ -1,0 +1,60 @@
+"""The ``pfnet`` command line: one entry point, one module per subcommand.
+
+Each subcommand lives in its own module, which exposes
+
+* ``HELP`` — a one-line summary for ``pfnet --help``,
+* ``add_arguments(parser)`` — its options,
+* ``run(args) -> int`` — the work; the exit code.
+
+Command modules import heavy dependencies (torch, trimesh, matplotlib) inside ``run`` so
+that ``pfnet --help`` and ``import pfnet`` stay fast and work without torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from pfnet.errors import PfnetError
+
+# name -> module implementing HELP / add_arguments / run
+COMMANDS: dict[str, str] = {
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser with every registered subcommand."""
+    from pfnet import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="pfnet",
+        description="PF-Net point cloud completion: prepare data, train, predict, evaluate.",
+    )
+    parser.add_argument("--version", action="version", version=f"pfnet {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module_name in COMMANDS.items():
+        module = importlib.import_module(module_name)
+        cmd = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(cmd)
+        cmd.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``pfnet`` with ``argv`` (default: ``sys.argv[1:]``); return the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print(f"pfnet {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except (PfnetError, ValueError, TypeError, FileNotFoundError, NotADirectoryError) as err:
+        print(f"pfnet {args.command}: error: {err}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,13 @@
+"""Exceptions raised by pfnet for bad input or bad files (the CLI prints them in one line)."""
+
+
+class PfnetError(Exception):
+    """Base class of pfnet's own errors; the CLI prints its message and exits non-zero."""
+
+
+class DataError(PfnetError, ValueError):
+    """A dataset, point cloud or prediction file is missing, unreadable or malformed."""
+
+
+class ConfigError(PfnetError, ValueError):
+    """A configuration value is out of range or of the wrong type."""
