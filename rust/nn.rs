@@ -1,0 +1,177 @@
+//! Exact nearest neighbours with a KD-tree (kiddo's `ImmutableKdTree`, the fastest Rust tree we
+//! measured for 3-D nearest-one queries).
+
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use kiddo::SquaredEuclidean;
+use rayon::prelude::*;
+
+use crate::error::{check_finite, GeometryError, Result};
+
+/// Below this many queries a single thread answers faster than a split across the pool.
+const PARALLEL_MIN_QUERIES: usize = 4096;
+
+/// A KD-tree over a reference cloud, answering nearest-one queries.
+pub struct NearestNeighborIndex<'a> {
+    tree: ImmutableKdTree<f32, u32, 3, 32>,
+    reference: &'a [[f32; 3]],
+}
+
+impl<'a> NearestNeighborIndex<'a> {
+    /// Build the tree; `reference` must be non-empty and finite (see [`nearest_neighbors`]).
+    pub fn new(reference: &'a [[f32; 3]]) -> Self {
+        NearestNeighborIndex {
+            tree: ImmutableKdTree::new_from_slice(reference),
+            reference,
+        }
+    }
+
+    /// Squared distance to, and index of, the nearest reference point of `q`.
+    #[inline]
+    pub fn nearest(&self, q: &[f32; 3]) -> (f32, u32) {
+        let found = self.tree.nearest_one::<SquaredEuclidean>(q);
+        let r = self.reference[found.item as usize];
+        // Recompute in the plain order so every caller sees the same float32 value.
+        let (dx, dy, dz) = (q[0] - r[0], q[1] - r[1], q[2] - r[2]);
+        (dx * dx + dy * dy + dz * dz, found.item)
+    }
+
+    /// Answer every query into `sq_dist`/`index`; in parallel when `parallel` and there are many.
+    pub fn query_into(
+        &self,
+        queries: &[[f32; 3]],
+        sq_dist: &mut [f32],
+        index: &mut [u32],
+        parallel: bool,
+    ) {
+        let answer = |(q, (d, i)): (&[f32; 3], (&mut f32, &mut u32))| {
+            (*d, *i) = self.nearest(q);
+        };
+        if parallel && queries.len() >= PARALLEL_MIN_QUERIES {
+            let chunk = 1024;
+            queries
+                .par_chunks(chunk)
+                .zip(
+                    sq_dist
+                        .par_chunks_mut(chunk)
+                        .zip(index.par_chunks_mut(chunk)),
+                )
+                .for_each(|(q, (d, i))| {
+                    q.iter()
+                        .zip(d.iter_mut().zip(i.iter_mut()))
+                        .for_each(answer)
+                });
+        } else {
+            queries
+                .iter()
+                .zip(sq_dist.iter_mut().zip(index.iter_mut()))
+                .for_each(answer);
+        }
+    }
+}
+
+/// Check a (query, reference) pair of clouds for emptiness and non-finite values.
+pub(crate) fn validate_pair(
+    query_arg: &'static str,
+    query: &[[f32; 3]],
+    reference_arg: &'static str,
+    reference: &[[f32; 3]],
+    batch: usize,
+) -> Result<()> {
+    if query.is_empty() {
+        return Err(GeometryError::Empty { arg: query_arg });
+    }
+    if reference.is_empty() {
+        return Err(GeometryError::Empty { arg: reference_arg });
+    }
+    check_finite(query_arg, batch, query)?;
+    check_finite(reference_arg, batch, reference)
+}
+
+/// For every query point, the squared distance to and index of its nearest reference point.
+pub fn nearest_neighbors(
+    query: &[[f32; 3]],
+    reference: &[[f32; 3]],
+) -> Result<(Vec<f32>, Vec<u32>)> {
+    validate_pair("query", query, "reference", reference, 0)?;
+    let mut sq_dist = vec![0.0; query.len()];
+    let mut index = vec![0; query.len()];
+    NearestNeighborIndex::new(reference).query_into(query, &mut sq_dist, &mut index, true);
+    Ok((sq_dist, index))
+}
+
+/// Brute-force reference: the lowest index among the nearest. Used by tests.
+pub fn nearest_neighbors_naive(query: &[[f32; 3]], reference: &[[f32; 3]]) -> (Vec<f32>, Vec<u32>) {
+    query
+        .iter()
+        .map(|q| {
+            let mut best = (f32::INFINITY, 0u32);
+            for (i, r) in reference.iter().enumerate() {
+                let (dx, dy, dz) = (q[0] - r[0], q[1] - r[1], q[2] - r[2]);
+                let d = dx * dx + dy * dy + dz * dz;
+                if d < best.0 {
+                    best = (d, i as u32);
+                }
+            }
+            best
+        })
+        .unzip()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{rngs::StdRng, Rng, SeedableRng};
+
+    fn cloud(n: usize, seed: u64, grid: bool) -> Vec<[f32; 3]> {
+        let mut rng = StdRng::seed_from_u64(seed);
+        (0..n)
+            .map(|_| {
+                if grid {
+                    [0, 1, 2].map(|_| rng.gen_range(0..4) as f32)
+                } else {
+                    [0, 1, 2].map(|_| rng.gen_range(-1.0f32..1.0))
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn matches_brute_force_distances() {
+        for (nq, nr, grid) in [
+            (1, 1, false),
+            (500, 3000, false),
+            (6000, 700, false),
+            (900, 900, true),
+        ] {
+            let (q, r) = (cloud(nq, 1, grid), cloud(nr, 2, grid));
+            let (d, i) = nearest_neighbors(&q, &r).unwrap();
+            let (dn, _) = nearest_neighbors_naive(&q, &r);
+            assert_eq!(d, dn, "nq={nq} nr={nr} grid={grid}");
+            for (k, qq) in q.iter().enumerate() {
+                let rr = r[i[k] as usize];
+                let dd =
+                    (qq[0] - rr[0]).powi(2) + (qq[1] - rr[1]).powi(2) + (qq[2] - rr[2]).powi(2);
+                assert_eq!(dd, d[k]);
+            }
+        }
+    }
+
+    #[test]
+    fn rejects_empty_and_non_finite() {
+        let r = cloud(5, 0, false);
+        assert_eq!(
+            nearest_neighbors(&[], &r).unwrap_err(),
+            GeometryError::Empty { arg: "query" }
+        );
+        assert_eq!(
+            nearest_neighbors(&r, &[]).unwrap_err(),
+            GeometryError::Empty { arg: "reference" }
+        );
+        let mut bad = r.clone();
+        bad[2][0] = f32::INFINITY;
+        assert!(nearest_neighbors(&r, &bad)
+            .unwrap_err()
+            .to_string()
+            .contains("reference"));
+    }
+}

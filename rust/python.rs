@@ -1,0 +1,340 @@
+//! The one binding module: every `#[pyfunction]` of `pfnet._core`.
+//!
+//! The functions here take batched, C-contiguous arrays (`pfnet.geometry` reshapes, converts and
+//! checks shapes first, so its messages can name the user's shapes), borrow them without copying,
+//! release the GIL while the Rust core works, and hand results back without copying.
+
+use numpy::ndarray::{Array1, Array2, Array3};
+use numpy::{
+    Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArrayMethods,
+};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use rayon::prelude::*;
+
+use crate::chamfer::{chamfer, chamfer_serial};
+use crate::crop::{self, CropSize, Directions};
+use crate::error::{check_finite, GeometryError};
+use crate::fps;
+use crate::nn::{validate_pair, NearestNeighborIndex};
+
+/// Two arrays returned together: (partial, missing), (sq_dist, index), (pred_to_gt, gt_to_pred).
+type Pair<'py, A, B> = (Bound<'py, A>, Bound<'py, B>);
+type Split<'py, T> = Pair<'py, PyArray3<T>, PyArray3<T>>;
+
+impl From<GeometryError> for PyErr {
+    fn from(err: GeometryError) -> PyErr {
+        PyValueError::new_err(err.to_string())
+    }
+}
+
+/// The clouds of a (B, N, 3) array as B slices of points.
+fn clouds<'a, T: Element>(
+    arg: &'static str,
+    array: &'a PyReadonlyArray3<'_, T>,
+) -> PyResult<Vec<&'a [[T; 3]]>> {
+    let shape = array.shape();
+    let n = shape[1];
+    if shape[2] != 3 {
+        return Err(PyValueError::new_err(format!(
+            "{arg} must have shape (B, N, 3), got {shape:?}"
+        )));
+    }
+    let flat = array
+        .as_slice()
+        .map_err(|_| PyValueError::new_err(format!("{arg} must be C-contiguous")))?;
+    let (points, _) = flat.as_chunks::<3>();
+    Ok(if n == 0 {
+        vec![&points[0..0]; shape[0]]
+    } else {
+        points.chunks(n).collect()
+    })
+}
+
+fn check_batches(a: &str, na: usize, b: &str, nb: usize) -> PyResult<()> {
+    if na != nb {
+        return Err(PyValueError::new_err(format!(
+            "{a} and {b} must have the same batch size, got {na} and {nb}"
+        )));
+    }
+    Ok(())
+}
+
+/// Exact IFPS of every cloud of `points` (B, N, 3); returns int64 indices (B, n_samples).
+#[pyfunction]
+fn farthest_point_sample<'py>(
+    py: Python<'py>,
+    points: PyReadonlyArray3<'py, f32>,
+    n_samples: usize,
+    start_index: usize,
+) -> PyResult<Bound<'py, PyArray2<i64>>> {
+    let batch = clouds("points", &points)?;
+    let b = batch.len();
+    let flat: Vec<i64> = py.detach(|| -> Result<Vec<i64>, GeometryError> {
+        for (i, cloud) in batch.iter().enumerate() {
+            fps::validate(cloud, n_samples, start_index)?;
+            check_finite("points", i, cloud)?;
+        }
+        let sample = |cloud: &&[[f32; 3]]| fps::sample_unchecked(cloud, n_samples, start_index);
+        // One cloud runs on one thread: splitting one IFPS per iteration loses (DESIGN.md §6).
+        let rows: Vec<Vec<usize>> = if b > 1 {
+            batch.par_iter().map(sample).collect()
+        } else {
+            batch.iter().map(sample).collect()
+        };
+        Ok(rows.into_iter().flatten().map(|i| i as i64).collect())
+    })?;
+    let out = Array2::from_shape_vec((b, n_samples), flat).expect("b * n_samples indices");
+    Ok(out.into_pyarray(py))
+}
+
+/// Nearest reference point of every query point, per batch item.
+#[pyfunction]
+fn nearest_neighbors<'py>(
+    py: Python<'py>,
+    query: PyReadonlyArray3<'py, f32>,
+    reference: PyReadonlyArray3<'py, f32>,
+) -> PyResult<Pair<'py, PyArray2<f32>, PyArray2<i64>>> {
+    let queries = clouds("query", &query)?;
+    let references = clouds("reference", &reference)?;
+    check_batches("query", queries.len(), "reference", references.len())?;
+    let (b, q) = (queries.len(), query.shape()[1]);
+    let (dist, index) = py.detach(|| -> Result<(Vec<f32>, Vec<u32>), GeometryError> {
+        for (i, (qc, rc)) in queries.iter().zip(&references).enumerate() {
+            validate_pair("query", qc, "reference", rc, i)?;
+        }
+        let mut dist = vec![0.0f32; b * q];
+        let mut index = vec![0u32; b * q];
+        let per_cloud = (dist.par_chunks_mut(q.max(1))).zip(index.par_chunks_mut(q.max(1)));
+        queries
+            .par_iter()
+            .zip(references.par_iter())
+            .zip(per_cloud)
+            .for_each(|((qc, rc), (d, i))| {
+                NearestNeighborIndex::new(rc).query_into(qc, d, i, b == 1)
+            });
+        Ok((dist, index))
+    })?;
+    let dist = Array2::from_shape_vec((b, q), dist).expect("b * q distances");
+    let index = Array2::from_shape_vec((b, q), index.into_iter().map(i64::from).collect())
+        .expect("b * q indices");
+    Ok((dist.into_pyarray(py), index.into_pyarray(py)))
+}
+
+/// The two directed Chamfer terms of every (pred, gt) pair, float64 (B,) each.
+#[pyfunction]
+#[pyo3(name = "chamfer")]
+fn chamfer_py<'py>(
+    py: Python<'py>,
+    pred: PyReadonlyArray3<'py, f32>,
+    gt: PyReadonlyArray3<'py, f32>,
+) -> PyResult<Pair<'py, PyArray1<f64>, PyArray1<f64>>> {
+    let preds = clouds("pred", &pred)?;
+    let gts = clouds("gt", &gt)?;
+    check_batches("pred", preds.len(), "gt", gts.len())?;
+    let terms = py.detach(|| -> Result<Vec<(f64, f64)>, GeometryError> {
+        if preds.len() == 1 {
+            return Ok(vec![chamfer(preds[0], gts[0])?]);
+        }
+        for (i, (p, g)) in preds.iter().zip(&gts).enumerate() {
+            validate_pair("pred", p, "gt", g, i)?;
+        }
+        Ok(preds
+            .par_iter()
+            .zip(gts.par_iter())
+            .map(|(p, g)| chamfer_serial(p, g))
+            .collect())
+    })?;
+    let (p2g, g2p): (Vec<f64>, Vec<f64>) = terms.into_iter().unzip();
+    Ok((
+        Array1::from(p2g).into_pyarray(py),
+        Array1::from(g2p).into_pyarray(py),
+    ))
+}
+
+/// Crop every cloud of a batch; `fill(i, cloud, kept, removed)` writes cloud `i`'s kept and
+/// removed coordinates into buffers with one spare point each (see `crop::write_split`).
+fn crop_batch<'py, T, F>(
+    py: Python<'py>,
+    points: &PyReadonlyArray3<'py, T>,
+    n_missing: usize,
+    fill: F,
+) -> PyResult<Split<'py, T>>
+where
+    T: Element + Copy + Default + Send + Sync,
+    F: Fn(usize, &[[T; 3]], &mut [T], &mut [T]) -> Result<(), GeometryError> + Send + Sync,
+{
+    let batch = clouds("points", points)?;
+    let (b, n) = (batch.len(), points.shape()[1]);
+    let (kept, removed) = ((n - n_missing) * 3, n_missing * 3);
+    let crop_one = |(i, cloud): (usize, &&[[T; 3]])| -> Result<(Vec<T>, Vec<T>), GeometryError> {
+        let mut partial = vec![T::default(); kept + 3];
+        let mut missing = vec![T::default(); removed + 3];
+        fill(i, cloud, &mut partial, &mut missing)?;
+        partial.truncate(kept);
+        missing.truncate(removed);
+        Ok((partial, missing))
+    };
+    let (partial, missing) = py.detach(|| -> Result<(Vec<T>, Vec<T>), GeometryError> {
+        if b == 1 {
+            return crop_one((0, &batch[0]));
+        }
+        let parts: Vec<(Vec<T>, Vec<T>)> = batch
+            .par_iter()
+            .enumerate()
+            .map(crop_one)
+            .collect::<Result<_, _>>()?;
+        let (partial, missing): (Vec<Vec<T>>, Vec<Vec<T>>) = parts.into_iter().unzip();
+        Ok((partial.concat(), missing.concat()))
+    })?;
+    let partial = Array3::from_shape_vec((b, n - n_missing, 3), partial).expect("partial shape");
+    let missing = Array3::from_shape_vec((b, n_missing, 3), missing).expect("missing shape");
+    Ok((partial.into_pyarray(py), missing.into_pyarray(py)))
+}
+
+fn check_n_missing(points_shape: &[usize], n_missing: usize) -> PyResult<()> {
+    if points_shape[1] == 0 {
+        return Err(GeometryError::Empty { arg: "points" }.into());
+    }
+    crop::check_count(n_missing, points_shape[1]).map_err(PyErr::from)
+}
+
+fn viewpoint_rows(viewpoints: &PyReadonlyArray2<'_, f64>, b: usize) -> PyResult<Vec<[f64; 3]>> {
+    let shape = viewpoints.shape();
+    if shape != [b, 3] {
+        return Err(PyValueError::new_err(format!(
+            "viewpoint must have shape (3,) or ({b}, 3) for a batch of {b}, got {shape:?}"
+        )));
+    }
+    let flat = viewpoints
+        .as_slice()
+        .map_err(|_| PyValueError::new_err("viewpoint must be C-contiguous"))?;
+    Ok(flat.as_chunks::<3>().0.to_vec())
+}
+
+macro_rules! crop_functions {
+    ($count:ident, $radius:ident, $multi:ident, $t:ty) => {
+        /// Remove the `n_missing` points nearest each cloud's viewpoint (B, 3).
+        #[pyfunction]
+        fn $count<'py>(
+            py: Python<'py>,
+            points: PyReadonlyArray3<'py, $t>,
+            viewpoints: PyReadonlyArray2<'py, f64>,
+            n_missing: usize,
+        ) -> PyResult<Split<'py, $t>> {
+            check_n_missing(points.shape(), n_missing)?;
+            let rows = viewpoint_rows(&viewpoints, points.shape()[0])?;
+            crop_batch(py, &points, n_missing, |i, cloud, kept, removed| {
+                crop::crop_count_into(cloud, rows[i], n_missing, kept, removed)
+                    .map_err(|e| with_batch(e, i))
+            })
+        }
+
+        /// Remove every point within `radius` of `viewpoint` from one cloud (N, 3).
+        #[pyfunction]
+        fn $radius<'py>(
+            py: Python<'py>,
+            points: PyReadonlyArray2<'py, $t>,
+            viewpoint: [f64; 3],
+            radius: f64,
+        ) -> PyResult<Pair<'py, PyArray2<$t>, PyArray2<$t>>> {
+            let flat = points
+                .as_slice()
+                .map_err(|_| PyValueError::new_err("points must be C-contiguous"))?;
+            let cloud = flat.as_chunks::<3>().0;
+            let (partial, missing) = py.detach(|| {
+                crop::crop_mask(cloud, viewpoint, CropSize::Radius(radius))
+                    .map(|mask| crop::split_by_mask(cloud, &mask))
+            })?;
+            let to_array = |v: Vec<[$t; 3]>| {
+                let rows = v.len();
+                Array2::from_shape_vec((rows, 3), v.into_iter().flatten().collect())
+                    .expect("rows * 3 coordinates")
+                    .into_pyarray(py)
+            };
+            Ok((to_array(partial), to_array(missing)))
+        }
+
+        /// Remove `n_missing` points split among each cloud's K viewpoints (B, K, 3).
+        #[pyfunction]
+        fn $multi<'py>(
+            py: Python<'py>,
+            points: PyReadonlyArray3<'py, $t>,
+            viewpoints: PyReadonlyArray3<'py, f64>,
+            n_missing: usize,
+        ) -> PyResult<Split<'py, $t>> {
+            check_n_missing(points.shape(), n_missing)?;
+            let centres = clouds("viewpoints", &viewpoints)?;
+            check_batches("points", points.shape()[0], "viewpoints", centres.len())?;
+            crop_batch(py, &points, n_missing, |i, cloud, kept, removed| {
+                let mask = crop::multi_region_mask(cloud, centres[i], n_missing)
+                    .map_err(|e| with_batch(e, i))?;
+                crop::write_split(cloud, &mask, kept, removed);
+                Ok(())
+            })
+        }
+    };
+}
+
+crop_functions!(crop_count_f32, crop_radius_f32, crop_multi_f32, f32);
+crop_functions!(crop_count_f64, crop_radius_f64, crop_multi_f64, f64);
+
+/// Put the batch index into a non-finite error raised inside a batch loop.
+fn with_batch(err: GeometryError, batch: usize) -> GeometryError {
+    match err {
+        GeometryError::NonFinite { arg, point, .. } => {
+            GeometryError::NonFinite { arg, batch, point }
+        }
+        other => other,
+    }
+}
+
+/// Seeded region centres for `batch` random crops: float64 (batch, n_regions, 3).
+#[pyfunction]
+fn random_centres<'py>(
+    py: Python<'py>,
+    seed: u64,
+    batch: usize,
+    n_regions: usize,
+    directions: &str,
+) -> PyResult<Bound<'py, PyArray3<f64>>> {
+    let directions = match directions {
+        "viewpoints" => Directions::Viewpoints,
+        "sphere" => Directions::Sphere,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "directions must be 'viewpoints' or 'sphere', got {other:?}"
+            )))
+        }
+    };
+    let mut flat = Vec::with_capacity(batch * n_regions * 3);
+    for stream in 0..batch {
+        let centres = crop::random_centres(seed, stream as u64, n_regions, directions)?;
+        flat.extend(centres.into_iter().flatten());
+    }
+    let out = Array3::from_shape_vec((batch, n_regions, 3), flat).expect("centre shape");
+    Ok(out.into_pyarray(py))
+}
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(farthest_point_sample, m)?)?;
+    m.add_function(wrap_pyfunction!(nearest_neighbors, m)?)?;
+    m.add_function(wrap_pyfunction!(chamfer_py, m)?)?;
+    m.add_function(wrap_pyfunction!(crop_count_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(crop_count_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(crop_radius_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(crop_radius_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(crop_multi_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(crop_multi_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(random_centres, m)?)?;
+    let viewpoints: Vec<f64> = crop::VIEWPOINTS.iter().flatten().copied().collect();
+    m.add(
+        "VIEWPOINTS",
+        Array2::from_shape_vec((5, 3), viewpoints)
+            .expect("5 viewpoints")
+            .into_pyarray(m.py()),
+    )?;
+    Ok(())
+}
