@@ -1,0 +1,125 @@
+"""Geometry core beside the tools people use today, timed in the same process.
+
+Run: ``python -m pytest benchmarks/bench_geometry.py --benchmark-only --benchmark-group-by=group``
+(needs the ``bench`` extra: fpsample, pykdtree, scipy). Each group holds our function and its
+anchor from DESIGN.md §6 on the same float32 cloud; compare the ``min`` or ``median`` columns.
+"""
+
+import numpy as np
+import pytest
+
+from pfnet import geometry as g
+
+fpsample = pytest.importorskip("fpsample")
+pykdtree = pytest.importorskip("pykdtree.kdtree")
+cKDTree = pytest.importorskip("scipy.spatial").cKDTree
+
+RNG = np.random.default_rng(0)
+
+
+def cloud(*shape):
+    return RNG.uniform(-1, 1, (*shape, 3)).astype(np.float32)
+
+
+# ------------------------------------------------------------------ farthest point sampling
+# fpsample is single-threaded with no batch API; our single-cloud IFPS is single-threaded too.
+FPS_CASES = [(2048, 512, 3), (16384, 1024, 5), (100_000, 4096, 7)]
+
+
+@pytest.mark.parametrize(("n", "k", "h"), FPS_CASES, ids=[f"{n}->{k}" for n, k, _ in FPS_CASES])
+def test_fps_pfnet(benchmark, n, k, h):
+    benchmark.group = f"fps {n}->{k}"
+    p = cloud(n)
+    idx = benchmark(g.farthest_point_sample, p, k)
+    assert len(np.unique(idx)) == k
+
+
+@pytest.mark.parametrize(("n", "k", "h"), FPS_CASES, ids=[f"{n}->{k}" for n, k, _ in FPS_CASES])
+def test_fps_fpsample_kdline(benchmark, n, k, h):
+    benchmark.group = f"fps {n}->{k}"
+    p = cloud(n)
+    idx = benchmark(fpsample.bucket_fps_kdline_sampling, p, k, h=h)
+    assert len(np.unique(idx)) == k
+
+
+def test_fps_batch36_pfnet(benchmark):
+    benchmark.group = "fps batch 36x2048->512"
+    b = cloud(36, 2048)
+    assert benchmark(g.farthest_point_sample, b, 512).shape == (36, 512)
+
+
+def test_fps_batch36_fpsample_loop(benchmark):
+    benchmark.group = "fps batch 36x2048->512"
+    b = cloud(36, 2048)
+
+    def loop():
+        return [fpsample.bucket_fps_kdline_sampling(c, 512, h=3) for c in b]
+
+    assert len(benchmark(loop)) == 36
+
+
+# ------------------------------------------------------------------ chamfer
+def pykdtree_chamfer(pred, gt):
+    """Both directed terms with pykdtree (OpenMP threads: all cores)."""
+    out = []
+    for p, t in zip(pred, gt):
+        d_pg, _ = pykdtree.KDTree(t).query(p, k=1)
+        d_gp, _ = pykdtree.KDTree(p).query(t, k=1)
+        out.append(((d_pg.astype(np.float64) ** 2).mean(), (d_gp.astype(np.float64) ** 2).mean()))
+    return out
+
+
+def ckdtree_chamfer(pred, gt):
+    out = []
+    for p, t in zip(pred, gt):
+        d_pg, _ = cKDTree(t).query(p, k=1, workers=-1)
+        d_gp, _ = cKDTree(p).query(t, k=1, workers=-1)
+        out.append(((d_pg**2).mean(), (d_gp**2).mean()))
+    return out
+
+
+CHAMFER_CASES = {"36 pairs of 2048": (36, 2048), "100k vs 100k": (1, 100_000)}
+
+
+@pytest.mark.parametrize("case", CHAMFER_CASES)
+@pytest.mark.parametrize("tool", ["pfnet", "pykdtree", "scipy-ckdtree"])
+def test_chamfer(benchmark, case, tool):
+    benchmark.group = f"chamfer {case}"
+    b, n = CHAMFER_CASES[case]
+    pred, gt = cloud(b, n), cloud(b, n)
+    fn = {"pfnet": g.chamfer, "pykdtree": pykdtree_chamfer, "scipy-ckdtree": ckdtree_chamfer}[tool]
+    result = benchmark(fn, pred, gt)
+    assert len(result[0] if tool == "pfnet" else result) == b
+
+
+# ------------------------------------------------------------------ crop
+def numpy_crop(points, viewpoint, n_missing):
+    d = ((points - viewpoint) ** 2).sum(axis=1)
+    mask = np.zeros(len(points), dtype=bool)
+    mask[np.argpartition(d, n_missing)[:n_missing]] = True
+    return points[~mask], points[mask]
+
+
+@pytest.mark.parametrize("tool", ["pfnet", "numpy-argpartition"])
+def test_crop_16k(benchmark, tool):
+    benchmark.group = "crop 16384, one viewpoint, 25%"
+    p = cloud(16384)
+    if tool == "pfnet":
+        partial, missing = benchmark(g.crop_by_viewpoint, p, g.VIEWPOINTS[0], n_missing=4096)
+    else:
+        partial, missing = benchmark(numpy_crop, p, g.VIEWPOINTS[0], 4096)
+    assert missing.shape == (4096, 3)
+
+
+def test_crop_batch36_pfnet(benchmark):
+    benchmark.group = "crop batch 36x2048, test protocol"
+    b = cloud(36, 2048)
+    views = g.VIEWPOINTS[np.arange(36) % 5]
+    assert benchmark(g.crop_by_viewpoint, b, views, n_missing=512)[1].shape == (36, 512, 3)
+
+
+def test_crop_batch36_numpy_loop(benchmark):
+    benchmark.group = "crop batch 36x2048, test protocol"
+    b = cloud(36, 2048)
+    views = g.VIEWPOINTS[np.arange(36) % 5]
+    assert len(benchmark(lambda: [numpy_crop(c, v, 512) for c, v in zip(b, views)])) == 36
