@@ -1,0 +1,114 @@
+"""The torch ``Dataset`` of completion samples, cropped on the fly by the Rust core."""
+
+from __future__ import annotations
+
+import operator
+import os
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from pfnet.data.crops import missing_count, test_protocol_viewpoints
+from pfnet.data.format import CloudSet, load_split
+from pfnet.errors import ConfigError
+
+__all__ = ["CROPS", "CompletionDataset"]
+
+CROPS: tuple[str, ...] = ("test", "viewpoint", "sphere", "multi")
+"""Crop modes: the deterministic test protocol, one random viewpoint of the five (the
+authors' training crop), one random direction on the unit sphere, or two random viewpoints."""
+
+_MULTI_REGIONS = 2  # paper §4.4: pieces lost "in two random positions"
+
+
+class CompletionDataset(Dataset):
+    """Completion samples of one split: the complete cloud, the partial input, the missing part.
+
+    Crops are made on the fly: ``crop="test"`` is the deterministic test protocol (sample
+    ``i`` loses the points nearest ``VIEWPOINTS[i % 5]``); the random crops are a function of
+    ``(seed, epoch, index)`` only, so they are reproducible and independent of the DataLoader's
+    workers. Call :meth:`set_epoch` before each epoch for fresh random crops (with
+    ``persistent_workers=True`` the workers keep the epoch they started with).
+
+    Args:
+        root: A dataset folder written by ``pfnet prepare``.
+        split: ``"train"``, ``"val"`` or ``"test"``.
+        missing_ratio: Share of points removed, ``m = round(r·N)`` (paper: 0.25).
+        crop: One of :data:`CROPS`.
+        seed: Seed of the random crops.
+
+    Each item is a dict: ``partial`` ``(N - m, 3)``, ``missing`` ``(m, 3)``, ``complete``
+    ``(N, 3)`` float32 tensors, ``category`` and ``name`` str, ``index`` int.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike[str],
+        split: str,
+        *,
+        missing_ratio: float = 0.25,
+        crop: str = "test",
+        seed: int = 0,
+    ) -> None:
+        if crop not in CROPS:
+            raise ConfigError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
+        self.clouds: CloudSet = load_split(root, split)
+        self.split = split
+        self.crop = crop
+        self.seed = seed
+        self.missing_ratio = missing_ratio
+        self.n_points = self.clouds.n_points
+        self.n_missing = missing_count(self.n_points, missing_ratio)
+        self.epoch = 0
+        self._viewpoints = test_protocol_viewpoints(len(self.clouds))
+
+    def __len__(self) -> int:
+        return len(self.clouds)
+
+    @property
+    def categories(self) -> list[str]:
+        """The split's distinct categories, sorted."""
+        return self.clouds.categories
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the random crops of ``epoch`` (a non-negative integer)."""
+        if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+            raise ConfigError(f"epoch must be a non-negative integer, got {epoch!r}")
+        self.epoch = epoch
+
+    def crop_seed(self, index: int) -> int:
+        """The seed of sample ``index``'s random crop at the current epoch."""
+        state = np.random.SeedSequence([self.seed, self.epoch, index]).generate_state(2, np.uint32)
+        return int(state[0]) << 32 | int(state[1])
+
+    def __getitem__(self, index: int) -> dict:
+        index = operator.index(index)
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"index {index} out of range for a dataset of {len(self)} samples")
+        index %= len(self)
+        from pfnet.geometry import crop_by_viewpoint, random_crop
+
+        complete = self.clouds.points[index]
+        if self.crop == "test":
+            partial, missing = crop_by_viewpoint(
+                complete, self._viewpoints[index], n_missing=self.n_missing
+            )
+        else:
+            partial, missing = random_crop(
+                complete,
+                self.n_missing,
+                seed=self.crop_seed(index),
+                n_regions=_MULTI_REGIONS if self.crop == "multi" else 1,
+                directions="sphere" if self.crop == "sphere" else "viewpoints",
+            )
+        return {
+            "partial": torch.from_numpy(np.ascontiguousarray(partial)),
+            "missing": torch.from_numpy(np.ascontiguousarray(missing)),
+            "complete": torch.from_numpy(complete.copy()),
+            "category": str(self.clouds.category[index]),
+            "name": str(self.clouds.name[index]),
+            "index": index,
+        }

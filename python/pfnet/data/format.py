@@ -1,0 +1,253 @@
+"""The on-disk dataset format shared by ``pfnet prepare``, training, ``predict`` and ``evaluate``.
+
+A dataset is a folder (DESIGN.md §3)::
+
+    DIR/manifest.json   format name and version, points per shape, source, seed, per-split
+                        per-category counts, licence/credit lines, skipped files
+    DIR/train.npz       points float32 (S, N, 3), category (S,) str, name (S,) str
+    DIR/val.npz         the same; always written, possibly with S = 0
+    DIR/test.npz        the same
+
+Names are unique in the whole dataset and filesystem safe (``[a-z0-9._-]``), so
+``PRED/<category>/<name>.npy`` is a valid path for every shape. A dataset is written into a
+sibling folder ``DIR.tmp-<pid>`` and renamed onto ``DIR`` only when every file is complete,
+so an interrupted run never leaves a folder that looks like a finished dataset.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import zipfile
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import DataError
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "MANIFEST_NAME",
+    "SPLITS",
+    "CloudSet",
+    "check_output",
+    "load_split",
+    "read_manifest",
+    "write_dataset",
+]
+
+FORMAT_NAME = "pfnet-completion-dataset"
+FORMAT_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+SPLITS: tuple[str, ...] = ("train", "val", "test")
+
+# A fixed timestamp for every member of the .npz archives: the same arrays give the same bytes.
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+@dataclass(frozen=True)
+class CloudSet:
+    """The shapes of one split.
+
+    Attributes:
+        points: float32 ``(S, N, 3)`` complete clouds, centred and scaled into the unit ball.
+        category: ``(S,)`` str category of each shape.
+        name: ``(S,)`` str unique, filesystem-safe name of each shape.
+    """
+
+    points: np.ndarray
+    category: np.ndarray
+    name: np.ndarray
+
+    def __post_init__(self) -> None:
+        points, category, name = self.points, self.category, self.name
+        if points.ndim != 3 or points.shape[2] != 3 or points.dtype != np.float32:
+            raise DataError(
+                f"points must be a float32 (S, N, 3) array, got {points.dtype} {points.shape}"
+            )
+        for label, array in (("category", category), ("name", name)):
+            if array.ndim != 1 or array.shape[0] != points.shape[0] or array.dtype.kind != "U":
+                raise DataError(
+                    f"{label} must be a str array of shape ({points.shape[0]},), "
+                    f"got {array.dtype} {array.shape}"
+                )
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_points(self) -> int:
+        """Points per shape, ``N``."""
+        return int(self.points.shape[1])
+
+    @property
+    def categories(self) -> list[str]:
+        """The distinct categories, sorted."""
+        return sorted({str(c) for c in self.category})
+
+    def subset(self, index: np.ndarray | list[int] | slice) -> CloudSet:
+        """The shapes at ``index`` (an index array, a boolean mask or a slice), in that order."""
+        return CloudSet(self.points[index], self.category[index], self.name[index])
+
+    @classmethod
+    def empty(cls, n_points: int) -> CloudSet:
+        """A split without shapes, ``(0, n_points, 3)``."""
+        return cls(np.zeros((0, n_points, 3), np.float32), np.zeros(0, "<U1"), np.zeros(0, "<U1"))
+
+
+def read_manifest(root: str | os.PathLike[str]) -> dict:
+    """Read and check ``ROOT/manifest.json``.
+
+    Args:
+        root: A dataset folder written by ``pfnet prepare``.
+
+    Returns:
+        The manifest as a dict (see the module docstring).
+
+    Raises:
+        DataError: The folder or its manifest is missing, unreadable or of another format.
+    """
+    folder = Path(root)
+    path = folder / MANIFEST_NAME
+    if not folder.is_dir():
+        raise DataError(f"{folder}: no such dataset folder")
+    if not path.is_file():
+        raise DataError(f"{folder}: not a pfnet dataset (no {MANIFEST_NAME}; run `pfnet prepare`)")
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise DataError(f"{path}: cannot read the manifest: {err}") from err
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
+        raise DataError(f"{path}: not a {FORMAT_NAME} manifest")
+    version = manifest.get("version")
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise DataError(
+            f"{path}: format version {version!r} is not supported (this pfnet reads up to "
+            f"{FORMAT_VERSION})"
+        )
+    return manifest
+
+
+def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
+    """Load one split of a dataset into memory.
+
+    Args:
+        root: A dataset folder written by ``pfnet prepare``.
+        split: ``"train"``, ``"val"`` or ``"test"``.
+
+    Returns:
+        The split's :class:`CloudSet`, in the stored order (the order the test protocol uses).
+
+    Raises:
+        DataError: Unknown split, missing or malformed file.
+    """
+    if split not in SPLITS:
+        raise DataError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    read_manifest(root)
+    path = Path(root) / f"{split}.npz"
+    if not path.is_file():
+        raise DataError(f"{path}: missing split file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = {"points", "category", "name"} - set(data.files)
+            if missing:
+                raise DataError(f"{path}: missing arrays {', '.join(sorted(missing))}")
+            arrays = {key: data[key] for key in ("points", "category", "name")}
+    except DataError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise DataError(f"{path}: cannot read the split: {err}") from err
+    try:
+        return CloudSet(**arrays)
+    except DataError as err:
+        raise DataError(f"{path}: {err}") from err
+
+
+def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
+    """Check that a dataset may be written to ``out`` before any work is done.
+
+    Args:
+        out: The dataset folder to create.
+        overwrite: Whether an existing non-empty folder may be replaced.
+
+    Returns:
+        ``out`` as a Path.
+
+    Raises:
+        DataError: ``out`` is a file, or a non-empty folder and ``overwrite`` is false.
+    """
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise DataError(f"{path}: exists and is not a folder")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise DataError(f"{path}: already exists and is not empty (pass --overwrite to replace it)")
+    return path
+
+
+def write_dataset(
+    out: str | os.PathLike[str],
+    splits: Mapping[str, CloudSet],
+    manifest: Mapping[str, object],
+    *,
+    overwrite: bool = False,
+) -> Path:
+    """Write a dataset folder atomically.
+
+    Everything goes into ``OUT.tmp-<pid>`` first; that folder is renamed onto ``OUT`` once
+    complete (an existing ``OUT`` is moved aside and deleted only after the rename).
+
+    Args:
+        out: The dataset folder.
+        splits: A :class:`CloudSet` for each of ``SPLITS``.
+        manifest: The manifest (JSON-serialisable).
+        overwrite: Whether an existing non-empty ``out`` may be replaced.
+
+    Returns:
+        ``out`` as a Path.
+    """
+    path = check_output(out, overwrite)
+    if set(splits) != set(SPLITS):
+        raise DataError(f"a dataset needs the splits {', '.join(SPLITS)}, got {sorted(splits)}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    old = path.with_name(f"{path.name}.old-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        tmp.mkdir()
+        for split in SPLITS:
+            cloud_set = splits[split]
+            _write_npz(
+                tmp / f"{split}.npz",
+                {
+                    "points": cloud_set.points,
+                    "category": cloud_set.category,
+                    "name": cloud_set.name,
+                },
+            )
+        text = json.dumps(manifest, indent=2, ensure_ascii=False) + "\n"
+        (tmp / MANIFEST_NAME).write_text(text, encoding="utf-8")
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old.exists() and not path.exists():
+            with contextlib.suppress(OSError):
+                os.replace(old, path)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    return path
+
+
+def _write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """``np.savez`` with a fixed member timestamp, so equal arrays give byte-identical files."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as archive:
+        for key, array in arrays.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=_ZIP_DATE)
+            with archive.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.ascontiguousarray(array), allow_pickle=False)

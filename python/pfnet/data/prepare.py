@@ -1,0 +1,473 @@
+"""``prepare_dataset``: any source → sampled, normalised clouds in the dataset format.
+
+Shapes are loaded and sampled in parallel worker processes; each shape's random stream
+depends only on the seed and its key, and the output is sorted by category and name, so the
+same source and seed give byte-identical arrays whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import os
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.data.format import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    SPLITS,
+    CloudSet,
+    check_output,
+    write_dataset,
+)
+from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
+from pfnet.data.sources import FORMATS, Scan, ShapeItem, load_item
+from pfnet.errors import ConfigError, DataError
+
+__all__ = ["PrepareReport", "assign_splits", "detect_format", "prepare_dataset", "process_item"]
+
+MIN_POINTS = 16
+DEFAULT_PROCEDURAL_COUNT = 100
+# Below this many shapes per worker a process pool costs more than it saves.
+_MIN_ITEMS_PER_WORKER = 8
+
+
+@dataclass
+class PrepareReport:
+    """What :func:`prepare_dataset` wrote.
+
+    Attributes:
+        out: The dataset folder.
+        format: The source format.
+        counts: ``{split: {category: shapes}}``.
+        skipped: ``(path, reason)`` of every shape that could not be prepared.
+        dropped: Shapes left out on purpose, by reason (e.g. ``unmatched``, ``light_source``).
+        seconds: Wall time.
+        manifest: The manifest written.
+    """
+
+    out: Path
+    format: str
+    counts: dict[str, dict[str, int]]
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    dropped: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+    manifest: dict = field(default_factory=dict)
+
+    @property
+    def total(self) -> int:
+        """Shapes written, all splits together."""
+        return sum(sum(c.values()) for c in self.counts.values())
+
+    def summary(self) -> str:
+        """A short human-readable table: shapes per category and split, skipped and dropped."""
+        categories = sorted({c for counts in self.counts.values() for c in counts})
+        width = max([len(c) for c in categories] + [8])
+        lines = [
+            f"wrote {self.out}: {self.total} shapes from {self.format} in {self.seconds:.1f} s",
+            f"{'category':<{width}} " + " ".join(f"{s:>6}" for s in (*SPLITS, "total")),
+        ]
+        for category in [*categories, "total"]:
+            row = [
+                sum(self.counts[s].values())
+                if category == "total"
+                else self.counts[s].get(category, 0)
+                for s in SPLITS
+            ]
+            lines.append(f"{category:<{width}} " + " ".join(f"{n:>6}" for n in (*row, sum(row))))
+        for reason, count in sorted(self.dropped.items()):
+            if count:
+                hint = " (keep them with --categories all)" if reason == "unmatched" else ""
+                lines.append(f"dropped {count} shapes: {reason.replace('_', ' ')}{hint}")
+        if self.skipped:
+            lines.append(f"skipped {len(self.skipped)} files:")
+            lines += [f"  {path}: {reason}" for path, reason in self.skipped]
+        return "\n".join(lines)
+
+
+def detect_format(source: str | os.PathLike[str] | None) -> str:
+    """Guess the source format.
+
+    Args:
+        source: ``None`` or ``"procedural"``, a ``.sh3f`` file, or a folder.
+
+    Returns:
+        One of :data:`pfnet.data.sources.FORMATS`.
+
+    Raises:
+        DataError: The source does not exist or matches no format.
+    """
+    from pfnet.data.sources import meshes, shapenet_part, sweethome3d
+
+    if source is None or str(source) == "procedural":
+        return "procedural"
+    path = Path(source)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    if sweethome3d.looks_like(path):
+        return "sweethome3d"
+    if shapenet_part.looks_like(path):
+        return "shapenet-part"
+    if meshes.looks_like(path):
+        return "meshes"
+    if path.is_dir() and not any(path.iterdir()):
+        raise DataError(f"{path}: the source folder is empty")
+    raise DataError(
+        f"{path}: cannot detect the format (expected *.sh3f catalogues, a ShapeNet-Part tree "
+        f"with {shapenet_part.CATEGORY_FILE}, or <category>/<mesh file> folders); "
+        "pass --format"
+    )
+
+
+def assign_splits(
+    items: Sequence[ShapeItem], seed: int, test_fraction: float, val_fraction: float
+) -> list[str]:
+    """Split each category by seed: ``round(f·n)`` test and val shapes, at least one train shape.
+
+    The permutation of a category depends only on the seed, the category and its keys.
+
+    Args:
+        items: The shapes.
+        seed: The dataset seed.
+        test_fraction: Fraction of each category for ``test``.
+        val_fraction: Fraction of each category for ``val``.
+
+    Returns:
+        The split of each item, in order.
+    """
+    by_category: dict[str, list[int]] = {}
+    for index, item in enumerate(items):
+        by_category.setdefault(item.category, []).append(index)
+    splits = ["train"] * len(items)
+    for category, indices in by_category.items():
+        indices = sorted(indices, key=lambda i: items[i].key)
+        n = len(indices)
+        n_test = min(round(test_fraction * n), n - 1)
+        n_val = max(min(round(val_fraction * n), n - 1 - n_test), 0)
+        order = shape_rng(seed, f"split:{category}").permutation(n)
+        for rank, position in enumerate(order):
+            if rank < n_test:
+                splits[indices[position]] = "test"
+            elif rank < n_test + n_val:
+                splits[indices[position]] = "val"
+    return splits
+
+
+def process_item(task: tuple[int, ShapeItem, int, int]) -> tuple[int, np.ndarray | None, str]:
+    """Load, sample and normalise one shape (runs in a worker process).
+
+    Args:
+        task: ``(index, item, n_points, seed)``.
+
+    Returns:
+        ``(index, points float32 (n_points, 3), "")``, or ``(index, None, reason)`` on failure.
+    """
+    index, item, n_points, seed = task
+    try:
+        geometry = load_item(item, seed)
+        rng = shape_rng(seed, item.key)
+        if geometry.faces is None:
+            points = resample_points(geometry.vertices, n_points, rng)
+        else:
+            points = sample_surface(geometry.vertices, geometry.faces, n_points, rng)
+        return index, normalize(points), ""
+    except DataError as err:
+        return index, None, str(err).removeprefix(f"{item.path}: ")
+    except Exception as err:  # a broken file can make any reader fail in its own way
+        return index, None, f"cannot read: {type(err).__name__}: {err}"
+
+
+def _default_workers() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not available on macOS
+        return os.cpu_count() or 1
+
+
+def _run(tasks: list, workers: int, progress: bool | None, stop_on_failure: bool) -> list:
+    """Process the tasks, in a pool when worth it; results in task order."""
+    from tqdm import tqdm
+
+    results = []
+    failures = 0
+    bar = tqdm(
+        total=len(tasks),
+        desc="prepare",
+        unit="shape",
+        file=sys.stderr,
+        disable=progress is False or (progress is None and not sys.stderr.isatty()),
+    )
+    with bar:
+        if workers <= 1 or len(tasks) < _MIN_ITEMS_PER_WORKER * 2:
+            outcomes = map(process_item, tasks)
+            pool = None
+        else:
+            import multiprocessing
+
+            # forkserver: fork() from a multi-threaded parent (torch, the Rust core's thread
+            # pool) can deadlock, and Python 3.12+ warns about it
+            methods = multiprocessing.get_all_start_methods()
+            context = multiprocessing.get_context("forkserver" if "forkserver" in methods else None)
+            pool = context.Pool(workers)
+            outcomes = pool.imap_unordered(process_item, tasks, chunksize=2)
+        try:
+            for outcome in outcomes:
+                results.append(outcome)
+                failures += outcome[1] is None
+                bar.update(1)
+                if failures:
+                    bar.set_postfix(failed=failures, refresh=False)
+                    if stop_on_failure:
+                        break
+        finally:
+            if pool is not None:
+                pool.terminate()
+                pool.join()
+    return sorted(results, key=lambda r: r[0])
+
+
+def _is_integer(value: object) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _check_arguments(
+    points: int, seed: int, test_fraction: float, val_fraction: float, workers: int | None
+) -> None:
+    if not _is_integer(points) or points < MIN_POINTS:
+        raise ConfigError(f"points must be an integer >= {MIN_POINTS}, got {points!r}")
+    if not _is_integer(seed) or seed < 0:
+        raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
+    for label, value in (("test_fraction", test_fraction), ("val_fraction", val_fraction)):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
+            raise ConfigError(f"{label} must be in [0, 1), got {value!r}")
+    if test_fraction + val_fraction >= 1:
+        raise ConfigError(
+            f"test_fraction + val_fraction must be below 1 (some shapes must train), got "
+            f"{test_fraction} + {val_fraction}"
+        )
+    if workers is not None and (not _is_integer(workers) or workers < 1):
+        raise ConfigError(f"workers must be a positive integer, got {workers!r}")
+
+
+def _scan(fmt: str, source, count: int | None, strict: bool) -> Scan:
+    from pfnet.data.sources import meshes, procedural, shapenet_part, sweethome3d
+
+    if fmt == "procedural":
+        if source is not None and str(source) != "procedural":
+            raise ConfigError(
+                f"the procedural format takes the source 'procedural', got {source!r}"
+            )
+        return procedural.scan(DEFAULT_PROCEDURAL_COUNT if count is None else count)
+    if count is not None:
+        raise ConfigError(f"count applies only to the procedural format, not to {fmt}")
+    if source is None:
+        raise ConfigError(f"the {fmt} format needs a source path")
+    path = Path(source)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    if fmt == "sweethome3d":
+        return sweethome3d.scan(path, strict=strict)
+    if not path.is_dir():
+        raise DataError(f"{path}: the {fmt} format needs a folder")
+    if fmt == "shapenet-part":
+        return shapenet_part.scan(path)
+    return meshes.scan(path)
+
+
+def _select(scan: Scan, fmt: str, categories: Sequence[str] | str | None) -> list[ShapeItem]:
+    """The items of the wanted categories; by default SweetHome3D leaves out ``other``."""
+    from pfnet.data.sources.sweethome3d import OTHER
+
+    available = sorted({item.category for item in scan.items})
+    if isinstance(categories, str):
+        categories = [c.strip() for c in categories.split(",") if c.strip()]
+    if categories is not None and len(categories) == 0:
+        raise ConfigError("categories is empty")
+    if categories is None or list(categories) == ["all"]:
+        keep = set(available)
+        if categories is None and fmt == "sweethome3d":
+            keep.discard(OTHER)
+            scan.dropped["unmatched"] = sum(item.category == OTHER for item in scan.items)
+    else:
+        keep = {c.lower() for c in categories}
+        unknown = sorted(keep - set(available))
+        if unknown:
+            raise ConfigError(
+                f"categories: {', '.join(unknown)} not in the source; "
+                f"available: {', '.join(available)}"
+            )
+    return [item for item in scan.items if item.category in keep]
+
+
+def prepare_dataset(
+    source: str | os.PathLike[str] | None,
+    out: str | os.PathLike[str],
+    *,
+    format: str = "auto",
+    points: int = 2048,
+    seed: int = 0,
+    test_fraction: float = 0.2,
+    val_fraction: float = 0.1,
+    categories: Sequence[str] | str | None = None,
+    workers: int | None = None,
+    count: int | None = None,
+    strict: bool = False,
+    overwrite: bool = False,
+    progress: bool | None = None,
+) -> PrepareReport:
+    """Build a completion dataset (DESIGN.md §3) from meshes, point clouds or procedural shapes.
+
+    Every shape: ``points`` points sampled uniformly (area-weighted, seeded) on its surface,
+    or a point cloud resampled to ``points`` (IFPS when it has more, seeded copies when it
+    has fewer); then centred at the centroid and divided by the max radius (paper §4.1).
+
+    Args:
+        source: A folder or ``.sh3f`` file; ``None`` or ``"procedural"`` for procedural shapes.
+        out: The dataset folder to write (atomically).
+        format: ``"auto"`` or one of ``meshes``, ``shapenet-part``, ``sweethome3d``,
+            ``procedural``.
+        points: Points per shape.
+        seed: Seeds sampling, procedural shapes and splits.
+        test_fraction: Share of each category for ``test`` (sources without their own split).
+        val_fraction: Share of each category for ``val`` (sources without their own split).
+        categories: Categories to keep (a list or a comma-separated string); ``"all"`` keeps
+            everything, including SweetHome3D's unmatched ``other`` models.
+        workers: Worker processes (default: the usable CPU cores).
+        count: Shapes per category for the procedural format (default 100).
+        strict: Fail on the first unreadable or degenerate file instead of skipping it.
+        overwrite: Replace an existing, non-empty ``out``.
+        progress: Show a progress bar on stderr (default: when stderr is a terminal).
+
+    Returns:
+        The report: counts per split and category, skipped files, timing.
+
+    Raises:
+        ConfigError: An argument is out of range.
+        DataError: The source is missing, empty or of unknown format; every shape failed; or
+            (with ``strict``) any shape failed.
+    """
+    start = time.perf_counter()
+    _check_arguments(points, seed, test_fraction, val_fraction, workers)
+    points, seed = int(points), int(seed)
+    workers = None if workers is None else int(workers)
+    if format != "auto" and format not in FORMATS:
+        raise ConfigError(f"format must be auto or one of {', '.join(FORMATS)}, got {format!r}")
+    if count is not None and (not _is_integer(count) or count < 1):
+        raise ConfigError(f"count must be a positive integer, got {count!r}")
+    count = None if count is None else int(count)
+    out_path = check_output(out, overwrite)
+    fmt = detect_format(source) if format == "auto" else format
+    scan = _scan(fmt, source, count, strict)
+    if strict and scan.skipped:
+        path, reason = scan.skipped[0]
+        raise DataError(f"{path}: {reason}")
+    items = _select(scan, fmt, categories)
+    if not items:
+        raise DataError(f"{source}: no shapes to prepare")
+    splits = (
+        [item.split or "train" for item in items]
+        if scan.has_splits
+        else assign_splits(items, seed, test_fraction, val_fraction)
+    )
+    tasks = [(index, item, points, seed) for index, item in enumerate(items)]
+    results = _run(tasks, workers or _default_workers(), progress, stop_on_failure=strict)
+    skipped = list(scan.skipped)
+    kept: dict[str, list[tuple[ShapeItem, np.ndarray]]] = {split: [] for split in SPLITS}
+    for index, cloud, reason in results:
+        item = items[index]
+        if cloud is None:
+            if strict:
+                raise DataError(f"{item.path}: {reason}")
+            skipped.append((item.path, reason))
+        else:
+            kept[splits[index]].append((item, cloud))
+    if not any(kept.values()):
+        raise DataError(f"{source}: every shape failed ({skipped[0][0]}: {skipped[0][1]})")
+    cloud_sets = {split: _cloud_set(kept[split], points) for split in SPLITS}
+    counts = {
+        split: dict(sorted(Counter(cloud_sets[split].category.tolist()).items()))
+        for split in SPLITS
+    }
+    licenses, credits = _credits(scan, [item for shapes in kept.values() for item, _ in shapes])
+    manifest = _manifest(
+        fmt, source, points, seed, test_fraction, val_fraction, scan, counts, skipped
+    )
+    manifest["licenses"] = licenses
+    if credits:
+        manifest["credits"] = credits
+    write_dataset(out_path, cloud_sets, manifest, overwrite=overwrite)
+    return PrepareReport(
+        out=out_path,
+        format=fmt,
+        counts=counts,
+        skipped=skipped,
+        dropped={k: v for k, v in scan.dropped.items() if v},
+        seconds=time.perf_counter() - start,
+        manifest=manifest,
+    )
+
+
+def _cloud_set(shapes: list[tuple[ShapeItem, np.ndarray]], n_points: int) -> CloudSet:
+    if not shapes:
+        return CloudSet.empty(n_points)
+    shapes = sorted(shapes, key=lambda s: (s[0].category, s[0].name))
+    return CloudSet(
+        np.stack([cloud for _, cloud in shapes]),
+        np.array([item.category for item, _ in shapes], dtype=str),
+        np.array([item.name for item, _ in shapes], dtype=str),
+    )
+
+
+def _credits(scan: Scan, kept: list[ShapeItem]) -> tuple[list[dict], dict[str, str]]:
+    """The licence records of the sources that contributed shapes (with their model count and
+    creators), and ``{name: creator}`` for sources that credit each model."""
+    if not scan.credits:
+        return scan.licenses, {}
+    used: dict[str, list[ShapeItem]] = {}
+    for item in kept:
+        used.setdefault(scan.credits[item.key][0], []).append(item)
+    licenses = []
+    for record in scan.licenses:
+        items = used.get(record["source"], [])
+        if items:
+            creators = sorted({scan.credits[i.key][1] for i in items} - {""})
+            licenses.append({**record, "models": len(items), "creators": creators})
+    credits = {item.name: scan.credits[item.key][1] for item in sorted(kept, key=lambda i: i.name)}
+    return licenses, credits
+
+
+def _manifest(
+    fmt, source, points, seed, test_fraction, val_fraction, scan, counts, skipped
+) -> dict:
+    from pfnet import __version__
+
+    return {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "pfnet_version": __version__,
+        "source": {"format": fmt, "path": None if source is None else str(source)},
+        "points": points,
+        "seed": seed,
+        "split": (
+            "from the source"
+            if scan.has_splits
+            else {"test_fraction": test_fraction, "val_fraction": val_fraction, "per": "category"}
+        ),
+        "normalization": "centroid (mean of the points) at the origin, divided by the max radius",
+        "up_axis": "y" if fmt in ("sweethome3d", "procedural") else "as in the source",
+        "categories": sorted({c for split in counts.values() for c in split}),
+        "splits": {
+            split: {"total": sum(counts[split].values()), "categories": counts[split]}
+            for split in SPLITS
+        },
+        "licenses": scan.licenses,
+        "dropped": {k: v for k, v in scan.dropped.items() if v},
+        "skipped": [{"path": path, "reason": reason} for path, reason in skipped],
+    }

@@ -1,0 +1,130 @@
+"""Seeded surface sampling, point-cloud resampling and normalisation (paper §4.1).
+
+Every shape gets its own random stream, derived from the dataset seed and the shape's stable
+key (its path in the source), so a shape's points do not depend on the other shapes, on the
+number of workers or on the order the workers finish in.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+
+from pfnet.errors import DataError
+
+__all__ = ["normalize", "resample_points", "sample_surface", "shape_rng"]
+
+
+def shape_rng(seed: int, key: str) -> np.random.Generator:
+    """The random generator of one shape: a function of ``(seed, key)`` only.
+
+    Args:
+        seed: The dataset seed (``--seed``), ``>= 0``.
+        key: The shape's stable key, e.g. its path relative to the source.
+
+    Returns:
+        A PCG64 generator.
+    """
+    digest = hashlib.blake2b(key.encode("utf-8"), digest_size=16).digest()
+    words = np.frombuffer(digest, dtype="<u4").tolist()
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, *words])))
+
+
+def sample_surface(
+    vertices: np.ndarray, faces: np.ndarray, n_points: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Sample points uniformly on a triangle mesh's surface (area-weighted).
+
+    Args:
+        vertices: ``(V, 3)`` coordinates.
+        faces: ``(F, 3)`` vertex indices of the triangles.
+        n_points: Number of points to draw.
+        rng: The shape's generator (:func:`shape_rng`).
+
+    Returns:
+        float64 ``(n_points, 3)``.
+
+    Raises:
+        DataError: No triangles, NaN/inf vertices, indices out of range or zero surface area.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
+        raise DataError(f"the mesh has no vertices (shape {vertices.shape})")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
+        raise DataError("the mesh has no triangles")
+    if faces.min() < 0 or faces.max() >= vertices.shape[0]:
+        raise DataError("a face refers to a vertex that does not exist")
+    if not np.isfinite(vertices).all():
+        raise DataError("the mesh has NaN or infinite vertex coordinates")
+    corners = vertices[faces]
+    edge_a = corners[:, 1] - corners[:, 0]
+    edge_b = corners[:, 2] - corners[:, 0]
+    area = 0.5 * np.linalg.norm(np.cross(edge_a, edge_b), axis=1)
+    cumulative = np.cumsum(area)
+    total = float(cumulative[-1])
+    if not (np.isfinite(total) and total > 0.0):
+        raise DataError("the mesh has zero surface area")
+    # side="right" never picks a zero-area triangle (its cumulative area equals the previous one)
+    face = np.searchsorted(cumulative, rng.random(n_points) * total, side="right")
+    face = np.minimum(face, len(area) - 1)
+    uv = rng.random((n_points, 2))
+    outside = uv.sum(axis=1) > 1.0
+    uv[outside] = 1.0 - uv[outside]
+    return corners[face, 0] + uv[:, :1] * edge_a[face] + uv[:, 1:] * edge_b[face]
+
+
+def resample_points(points: np.ndarray, n_points: int, rng: np.random.Generator) -> np.ndarray:
+    """Bring a point cloud to exactly ``n_points`` points.
+
+    More points: iterative farthest point sampling (``pfnet.geometry``) from a start index
+    drawn with ``rng``. Fewer points: every original point is kept, followed by copies of
+    ``n_points - N`` points drawn with ``rng`` (without replacement while ``n_points <= 2N``).
+
+    Args:
+        points: ``(N, 3)`` finite coordinates, ``N >= 1``.
+        n_points: The wanted number of points.
+        rng: The shape's generator.
+
+    Returns:
+        float64 ``(n_points, 3)``.
+    """
+    from pfnet.geometry import farthest_point_sample
+
+    points = np.asarray(points, dtype=np.float64)
+    count = points.shape[0]
+    if count == 0:
+        raise DataError("the point cloud is empty")
+    if not np.isfinite(points).all():
+        raise DataError("the point cloud has NaN or infinite coordinates")
+    if count > n_points:
+        start = int(rng.integers(count))
+        return points[farthest_point_sample(points, n_points, start_index=start)]
+    if count == n_points:
+        return points.copy()
+    extra = rng.choice(count, n_points - count, replace=n_points - count > count)
+    return np.concatenate([points, points[extra]])
+
+
+def normalize(points: np.ndarray) -> np.ndarray:
+    """Centre a cloud at the origin and scale it into the unit ball, as the authors do.
+
+    The authors' ``pc_normalize`` subtracts the centroid (the mean of the points) and
+    divides by the largest distance to it, so every coordinate lies in ``[-1, 1]``.
+
+    Args:
+        points: ``(N, 3)``.
+
+    Returns:
+        float32 ``(N, 3)`` with mean 0 and largest norm 1.
+
+    Raises:
+        DataError: All points coincide (nothing to scale).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    centred = points - points.mean(axis=0)
+    radius = float(np.sqrt((centred**2).sum(axis=1)).max())
+    if not (np.isfinite(radius) and radius > 0.0):
+        raise DataError("the shape is degenerate: all sampled points coincide")
+    return (centred / radius).astype(np.float32)

@@ -1,0 +1,141 @@
+"""The data sources ``pfnet prepare`` reads, each turned into a list of :class:`ShapeItem`.
+
+A source module has a ``scan(...) -> Scan`` that finds the shapes without loading them, and
+the worker processes call :func:`load_item` to load one shape as a mesh or a point cloud.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "FORMATS",
+    "Geometry",
+    "Scan",
+    "ShapeItem",
+    "load_item",
+    "safe_name",
+    "unique_names",
+]
+
+FORMATS: tuple[str, ...] = ("meshes", "shapenet-part", "sweethome3d", "procedural")
+"""The source formats ``pfnet prepare --format`` accepts (besides ``auto``)."""
+
+_UNSAFE = re.compile(r"[^a-z0-9._-]+")
+_MAX_NAME = 96
+
+
+@dataclass(frozen=True)
+class ShapeItem:
+    """One shape to prepare; small and picklable, so it can be sent to a worker process.
+
+    Attributes:
+        key: Stable identity in the source (e.g. a relative path); seeds the shape's sampling.
+        name: Unique, filesystem-safe name in the dataset.
+        category: Category label.
+        path: Where the shape comes from, for reports (a file, or ``CATALOGUE.sh3f:/model.obj``).
+        kind: How to load it: ``"mesh-file"``, ``"cloud-file"``, ``"sh3f"`` or ``"procedural"``.
+        split: ``"train"``/``"val"``/``"test"`` when the source defines it, else None.
+        args: Loader arguments for ``kind``.
+    """
+
+    key: str
+    name: str
+    category: str
+    path: str
+    kind: str
+    split: str | None = None
+    args: tuple = ()
+
+
+@dataclass
+class Scan:
+    """What a source holds: the shapes, and what was dropped or unreadable before loading.
+
+    Attributes:
+        items: The shapes to prepare.
+        licenses: Licence/credit records copied into the manifest.
+        dropped: Counts of shapes left out on purpose, by reason.
+        skipped: ``(path, reason)`` of entries that cannot be prepared (e.g. a file listed in a
+            split but missing).
+        has_splits: Whether the source defines the train/val/test split.
+        credits: ``{key: (licence source, creator)}`` for sources that credit each model;
+            the licence source is the ``"source"`` of a record in ``licenses``.
+    """
+
+    items: list[ShapeItem]
+    licenses: list[dict] = field(default_factory=list)
+    dropped: dict[str, int] = field(default_factory=dict)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    has_splits: bool = False
+    credits: dict[str, tuple[str, str]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """A loaded shape: a triangle mesh (``faces`` given) or a point cloud (``faces`` None)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray | None = None
+
+
+def safe_name(text: str) -> str:
+    """A lower-case, filesystem-safe version of ``text`` (``[a-z0-9._-]``, no leading dot)."""
+    name = _UNSAFE.sub("_", text.lower()).strip("._-")
+    return name[:_MAX_NAME].rstrip("._-") or "shape"
+
+
+def unique_names(wanted: Mapping[str, str]) -> dict[str, str]:
+    """Safe names, unique among all shapes, from the name wanted for each key.
+
+    Args:
+        wanted: ``{key: wanted name}``; keys are distinct, wanted names may clash.
+
+    Returns:
+        ``{key: name}``: :func:`safe_name` of the wanted name, with ``-2``, ``-3``... appended
+        on a clash (in key order, so the result does not depend on the input order).
+    """
+    names: dict[str, str] = {}
+    taken: set[str] = set()
+    for key in sorted(wanted):
+        base = safe_name(wanted[key])
+        name, suffix = base, 2
+        while name in taken:
+            name = f"{base}-{suffix}"
+            suffix += 1
+        taken.add(name)
+        names[key] = name
+    return names
+
+
+def load_item(item: ShapeItem, seed: int) -> Geometry:
+    """Load one shape (runs in a worker process).
+
+    Args:
+        item: The shape.
+        seed: The dataset seed (procedural shapes are built from it).
+
+    Returns:
+        The shape's geometry.
+    """
+    if item.kind == "mesh-file":
+        from pfnet.data.sources.meshes import load_mesh_file
+
+        return load_mesh_file(item.path)
+    if item.kind == "cloud-file":
+        from pfnet.io import read_point_cloud
+
+        return Geometry(read_point_cloud(item.path))
+    if item.kind == "sh3f":
+        from pfnet.data.sources.sweethome3d import load_model
+
+        return load_model(*item.args)
+    if item.kind == "procedural":
+        from pfnet.data.sources.procedural import build_shape
+
+        return build_shape(item.category, seed, item.key)
+    raise ValueError(f"unknown shape kind {item.kind!r}")

@@ -1,0 +1,104 @@
+"""Mesh folders: ``ROOT/<category>/<any name>.<suffix>``, read with trimesh.
+
+Meshes (``.obj .off .ply .stl .glb .gltf``) are sampled on their surface; point clouds
+(``.xyz .pts .npy .pcd``, and ``.ply`` files without faces) are resampled to the point count.
+Files may sit in sub-folders of a category folder; other suffixes (``.mtl``, textures,
+notes) are ignored. Hidden files and folders (starting with ``.``) are ignored.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pfnet.data.sources import Geometry, Scan, ShapeItem, safe_name, unique_names
+from pfnet.errors import DataError
+
+__all__ = ["CLOUD_SUFFIXES", "MESH_SUFFIXES", "load_mesh_file", "looks_like", "scan"]
+
+MESH_SUFFIXES: tuple[str, ...] = (".obj", ".off", ".ply", ".stl", ".glb", ".gltf")
+CLOUD_SUFFIXES: tuple[str, ...] = (".xyz", ".pts", ".npy", ".pcd")
+
+
+def _shape_files(folder: Path) -> list[Path]:
+    suffixes = MESH_SUFFIXES + CLOUD_SUFFIXES
+    return sorted(
+        path
+        for path in folder.rglob("*")
+        if path.suffix.lower() in suffixes
+        and path.is_file()
+        and not any(part.startswith(".") for part in path.relative_to(folder).parts)
+    )
+
+
+def looks_like(root: Path) -> bool:
+    """Whether ``root`` has at least one category folder holding a mesh or point cloud file."""
+    return root.is_dir() and any(
+        _shape_files(folder) for folder in root.iterdir() if folder.is_dir()
+    )
+
+
+def scan(root: Path) -> Scan:
+    """Find the shape files of a mesh folder.
+
+    Args:
+        root: The folder with one sub-folder per category.
+
+    Returns:
+        The scan (no split of its own); names come from the paths inside each category.
+
+    Raises:
+        DataError: No category folder holds a shape file.
+    """
+    found: list[tuple[str, Path]] = []
+    for folder in sorted(root.iterdir()):
+        if folder.is_dir() and not folder.name.startswith("."):
+            found += [(safe_name(folder.name), path) for path in _shape_files(folder)]
+    if not found:
+        suffixes = " ".join(MESH_SUFFIXES + CLOUD_SUFFIXES)
+        raise DataError(
+            f"{root}: no shapes found; expected {root}/<category>/<file> "
+            f"with a suffix in: {suffixes}"
+        )
+    keys = {path: path.relative_to(root).as_posix() for _, path in found}
+    # wanted name: the category, then the path inside its folder without the suffix
+    stems = {}
+    for category, path in found:
+        inside = path.relative_to(root).with_suffix("").as_posix().split("/", 1)[1]
+        stems[keys[path]] = f"{category}_{inside}"
+    names = unique_names(stems)
+    items = [
+        ShapeItem(
+            key=keys[path],
+            name=names[keys[path]],
+            category=category,
+            path=str(path),
+            kind="cloud-file" if path.suffix.lower() in CLOUD_SUFFIXES else "mesh-file",
+        )
+        for category, path in found
+    ]
+    return Scan(items=items)
+
+
+def load_mesh_file(path: str) -> Geometry:
+    """Read a mesh with trimesh (scenes are flattened with their transforms).
+
+    A ``.ply`` without faces is read as a point cloud with :func:`pfnet.io.read_point_cloud`.
+
+    Args:
+        path: The file.
+
+    Returns:
+        The mesh, or the point cloud.
+    """
+    import numpy as np
+    import trimesh
+
+    suffix = Path(path).suffix.lower()
+    options = {"skip_materials": True} if suffix == ".obj" else {}
+    mesh = trimesh.load(path, force="mesh", process=False, **options)
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    if suffix == ".ply" and len(faces) == 0:
+        from pfnet.io import read_point_cloud
+
+        return Geometry(read_point_cloud(path))
+    return Geometry(np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3), faces)

@@ -1,0 +1,107 @@
+"""The torch CompletionDataset: test-protocol crops and seeded random training crops."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from pfnet.data import load_split, test_protocol_crop  # noqa: E402
+from pfnet.data.dataset import CompletionDataset  # noqa: E402
+from pfnet.errors import ConfigError, DataError  # noqa: E402
+
+
+def _sorted_rows(points: np.ndarray) -> np.ndarray:
+    return points[np.lexsort(points.T[::-1])]
+
+
+def test_test_crop_matches_the_protocol(tiny_dataset: Path) -> None:
+    dataset = CompletionDataset(tiny_dataset, "test", missing_ratio=0.25, crop="test")
+    clouds = load_split(tiny_dataset, "test")
+    partial, missing = test_protocol_crop(clouds.points, 0.25)
+    assert len(dataset) == 12 and dataset.n_missing == 128 and dataset.n_points == 512
+    for i in range(len(dataset)):
+        item = dataset[i]
+        assert item["partial"].dtype == torch.float32 and item["partial"].shape == (384, 3)
+        np.testing.assert_array_equal(item["partial"].numpy(), partial[i])
+        np.testing.assert_array_equal(item["missing"].numpy(), missing[i])
+        np.testing.assert_array_equal(item["complete"].numpy(), clouds.points[i])
+        assert (item["category"], item["name"], item["index"]) == (
+            clouds.category[i], clouds.name[i], i,
+        )  # fmt: skip
+    dataset.set_epoch(3)  # the test protocol does not depend on the epoch
+    np.testing.assert_array_equal(dataset[4]["missing"].numpy(), missing[4])
+    assert dataset.categories == ["chair", "lamp", "sofa", "table"]
+
+
+@pytest.mark.parametrize("crop", ["viewpoint", "sphere", "multi"])
+def test_random_crops_are_seeded_by_seed_epoch_index(tiny_dataset: Path, crop: str) -> None:
+    dataset = CompletionDataset(tiny_dataset, "train", missing_ratio=0.5, crop=crop, seed=7)
+    twin = CompletionDataset(tiny_dataset, "train", missing_ratio=0.5, crop=crop, seed=7)
+    first = [dataset[i]["missing"].numpy() for i in range(len(dataset))]
+    for i in range(len(dataset)):
+        np.testing.assert_array_equal(twin[i]["missing"].numpy(), first[i])
+        np.testing.assert_array_equal(dataset[i]["missing"].numpy(), first[i])  # repeatable
+        item = dataset[i]
+        assert item["partial"].shape == (256, 3) and item["missing"].shape == (256, 3)
+        union = np.concatenate([item["partial"].numpy(), item["missing"].numpy()])
+        np.testing.assert_array_equal(_sorted_rows(union), _sorted_rows(item["complete"].numpy()))
+    dataset.set_epoch(1)
+    second = [dataset[i]["missing"].numpy() for i in range(len(dataset))]
+    assert (
+        sum(not np.array_equal(a, b) for a, b in zip(first, second, strict=True)) > len(first) // 2
+    )
+    other = CompletionDataset(tiny_dataset, "train", missing_ratio=0.5, crop=crop, seed=8)
+    assert any(not np.array_equal(other[i]["missing"].numpy(), first[i]) for i in range(len(other)))
+
+
+def test_viewpoint_crop_uses_one_of_the_five_viewpoints(tiny_dataset: Path) -> None:
+    from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint
+
+    dataset = CompletionDataset(tiny_dataset, "train", crop="viewpoint", seed=1)
+    used = set()
+    for i in range(len(dataset)):
+        item = dataset[i]
+        matches = [
+            k
+            for k, view in enumerate(VIEWPOINTS)
+            if np.array_equal(
+                crop_by_viewpoint(item["complete"].numpy(), view, n_missing=128)[1],
+                item["missing"].numpy(),
+            )
+        ]
+        assert matches, f"sample {i} was not cropped at a viewpoint"
+        used.add(matches[0])
+    assert len(used) >= 3
+
+
+def test_dataloader_batches(tiny_dataset: Path) -> None:
+    loader = torch.utils.data.DataLoader(
+        CompletionDataset(tiny_dataset, "val", crop="viewpoint"), batch_size=4
+    )
+    batch = next(iter(loader))
+    assert batch["partial"].shape == (4, 384, 3) and batch["missing"].shape == (4, 128, 3)
+    assert len(batch["name"]) == 4 and batch["index"].tolist() == [0, 1, 2, 3]
+
+
+def test_dataset_errors(tiny_dataset: Path, tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="crop must be one of test, viewpoint, sphere, multi"):
+        CompletionDataset(tiny_dataset, "train", crop="random")
+    with pytest.raises(ConfigError, match="seed must be a non-negative integer"):
+        CompletionDataset(tiny_dataset, "train", seed=-2)
+    with pytest.raises(ConfigError, match="missing_ratio must be in"):
+        CompletionDataset(tiny_dataset, "train", missing_ratio=1.2)
+    with pytest.raises(DataError, match="split must be one of"):
+        CompletionDataset(tiny_dataset, "dev")
+    with pytest.raises(DataError, match="no such dataset folder"):
+        CompletionDataset(tmp_path / "none", "train")
+    dataset = CompletionDataset(tiny_dataset, "val")
+    with pytest.raises(ConfigError, match="epoch must be a non-negative integer"):
+        dataset.set_epoch(-1)
+    with pytest.raises(IndexError, match="index 8 out of range for a dataset of 8 samples"):
+        dataset[8]
+    assert dataset[-1]["index"] == 7
+    assert type(dataset[np.int64(2)]["index"]) is int
