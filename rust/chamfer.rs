@@ -25,7 +25,7 @@ fn directed_parallel(from: &[[f32; 3]], to: &NearestNeighborIndex<'_>) -> f64 {
 pub fn chamfer(pred: &[[f32; 3]], gt: &[[f32; 3]]) -> Result<(f64, f64)> {
     validate_pair("pred", pred, "gt", gt, 0)?;
     let large = pred.len() + gt.len() >= 8192;
-    if !large {
+    if !large || !crate::parallel_allowed() {
         return Ok(chamfer_serial(pred, gt));
     }
     // Build both trees at once, then query each direction with all threads.
@@ -50,6 +50,13 @@ pub(crate) fn chamfer_serial(pred: &[[f32; 3]], gt: &[[f32; 3]]) -> (f64, f64) {
 pub fn chamfer_batch(preds: &[&[[f32; 3]]], gts: &[&[[f32; 3]]]) -> Result<Vec<(f64, f64)>> {
     for (b, (p, g)) in preds.iter().zip(gts).enumerate() {
         validate_pair("pred", p, "gt", g, b)?;
+    }
+    if !crate::parallel_allowed() {
+        return Ok(preds
+            .iter()
+            .zip(gts)
+            .map(|(p, g)| chamfer_serial(p, g))
+            .collect());
     }
     Ok(preds
         .par_iter()

@@ -11,6 +11,17 @@ pub mod nn;
 #[cfg(feature = "python")]
 mod python;
 
+/// Whether this process may use rayon's thread pool.
+///
+/// A process forked after the pool started (a DataLoader worker under Linux's default `fork`
+/// start method) inherits the pool's bookkeeping but not its threads, so parallel work would
+/// wait forever. The first call records the process id; a call from another process (a fork
+/// child) gets `false`, and the caller then runs sequentially.
+pub fn parallel_allowed() -> bool {
+    static POOL_OWNER: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+    *POOL_OWNER.get_or_init(std::process::id) == std::process::id()
+}
+
 pub use chamfer::{chamfer, chamfer_batch};
 pub use crop::{
     crop_mask, multi_region_mask, random_centres, split_by_mask, CropSize, Directions, VIEWPOINTS,

@@ -46,7 +46,7 @@ impl<'a> NearestNeighborIndex<'a> {
         let answer = |(q, (d, i)): (&[f32; 3], (&mut f32, &mut u32))| {
             (*d, *i) = self.nearest(q);
         };
-        if parallel && queries.len() >= PARALLEL_MIN_QUERIES {
+        if parallel && queries.len() >= PARALLEL_MIN_QUERIES && crate::parallel_allowed() {
             let chunk = 1024;
             queries
                 .par_chunks(chunk)

@@ -13,7 +13,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use rayon::prelude::*;
 
-use crate::chamfer::{chamfer, chamfer_serial};
+use crate::chamfer::{chamfer, chamfer_batch};
 use crate::crop::{self, CropSize, Directions};
 use crate::error::{check_finite, GeometryError};
 use crate::fps;
@@ -22,10 +22,21 @@ use crate::nn::{validate_pair, NearestNeighborIndex};
 /// Two arrays returned together: (partial, missing), (sq_dist, index), (pred_to_gt, gt_to_pred).
 type Pair<'py, A, B> = (Bound<'py, A>, Bound<'py, B>);
 type Split<'py, T> = Pair<'py, PyArray3<T>, PyArray3<T>>;
+type Cloud<'a> = &'a [[f32; 3]];
 
 impl From<GeometryError> for PyErr {
     fn from(err: GeometryError) -> PyErr {
         PyValueError::new_err(err.to_string())
+    }
+}
+
+/// `f` applied to every item, across the thread pool when there are several items and this
+/// process may use it (see [`crate::parallel_allowed`]), else in order on this thread.
+fn map_batch<I: Sync, R: Send>(items: &[I], f: impl Fn(usize, &I) -> R + Sync + Send) -> Vec<R> {
+    if items.len() > 1 && crate::parallel_allowed() {
+        items.par_iter().enumerate().map(|(i, x)| f(i, x)).collect()
+    } else {
+        items.iter().enumerate().map(|(i, x)| f(i, x)).collect()
     }
 }
 
@@ -76,13 +87,10 @@ fn farthest_point_sample<'py>(
             fps::validate(cloud, n_samples, start_index)?;
             check_finite("points", i, cloud)?;
         }
-        let sample = |cloud: &&[[f32; 3]]| fps::sample_unchecked(cloud, n_samples, start_index);
         // One cloud runs on one thread: splitting one IFPS per iteration loses (DESIGN.md §6).
-        let rows: Vec<Vec<usize>> = if b > 1 {
-            batch.par_iter().map(sample).collect()
-        } else {
-            batch.iter().map(sample).collect()
-        };
+        let rows = map_batch(&batch, |_, cloud| {
+            fps::sample_unchecked(cloud, n_samples, start_index)
+        });
         Ok(rows.into_iter().flatten().map(|i| i as i64).collect())
     })?;
     let out = Array2::from_shape_vec((b, n_samples), flat).expect("b * n_samples indices");
@@ -104,16 +112,15 @@ fn nearest_neighbors<'py>(
         for (i, (qc, rc)) in queries.iter().zip(&references).enumerate() {
             validate_pair("query", qc, "reference", rc, i)?;
         }
-        let mut dist = vec![0.0f32; b * q];
-        let mut index = vec![0u32; b * q];
-        let per_cloud = (dist.par_chunks_mut(q.max(1))).zip(index.par_chunks_mut(q.max(1)));
-        queries
-            .par_iter()
-            .zip(references.par_iter())
-            .zip(per_cloud)
-            .for_each(|((qc, rc), (d, i))| {
-                NearestNeighborIndex::new(rc).query_into(qc, d, i, b == 1)
-            });
+        let pairs: Vec<(Cloud, Cloud)> = queries.into_iter().zip(references).collect();
+        let rows = map_batch(&pairs, |_, (qc, rc)| {
+            let mut dist = vec![0.0f32; q];
+            let mut index = vec![0u32; q];
+            NearestNeighborIndex::new(rc).query_into(qc, &mut dist, &mut index, b == 1);
+            (dist, index)
+        });
+        let (dist, index): (Vec<Vec<f32>>, Vec<Vec<u32>>) = rows.into_iter().unzip();
+        let (dist, index) = (dist.concat(), index.concat());
         Ok((dist, index))
     })?;
     let dist = Array2::from_shape_vec((b, q), dist).expect("b * q distances");
@@ -137,14 +144,7 @@ fn chamfer_py<'py>(
         if preds.len() == 1 {
             return Ok(vec![chamfer(preds[0], gts[0])?]);
         }
-        for (i, (p, g)) in preds.iter().zip(&gts).enumerate() {
-            validate_pair("pred", p, "gt", g, i)?;
-        }
-        Ok(preds
-            .par_iter()
-            .zip(gts.par_iter())
-            .map(|(p, g)| chamfer_serial(p, g))
-            .collect())
+        chamfer_batch(&preds, &gts)
     })?;
     let (p2g, g2p): (Vec<f64>, Vec<f64>) = terms.into_iter().unzip();
     Ok((
@@ -180,10 +180,8 @@ where
         if b == 1 {
             return crop_one((0, &batch[0]));
         }
-        let parts: Vec<(Vec<T>, Vec<T>)> = batch
-            .par_iter()
-            .enumerate()
-            .map(crop_one)
+        let parts: Vec<(Vec<T>, Vec<T>)> = map_batch(&batch, |i, cloud| crop_one((i, cloud)))
+            .into_iter()
             .collect::<Result<_, _>>()?;
         let (partial, missing): (Vec<Vec<T>>, Vec<Vec<T>>) = parts.into_iter().unzip();
         Ok((partial.concat(), missing.concat()))

@@ -424,3 +424,32 @@ def test_no_rust_panic_escapes_on_odd_shapes():
     assert g.farthest_point_sample(np.zeros((1, 3)), 1).tolist() == [0]
     partial, missing = g.crop_by_viewpoint(np.zeros((1, 3)), [0, 0, 0], n_missing=0)
     assert partial.shape == (1, 3) and missing.shape == (0, 3)
+
+
+def _batched_calls_in_child(queue):
+    batch = np.stack([cloud(3000, s) for s in range(4)])
+    idx = g.farthest_point_sample(batch, 16)
+    partial, _ = g.crop_by_viewpoint(batch, g.VIEWPOINTS[:4], n_missing=100)
+    d, _ = g.nearest_neighbors(batch, batch[::-1].copy())
+    big = cloud(20000)
+    queue.put((idx.shape, partial.shape, d.shape, g.chamfer(big, big)))
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # Python 3.12 warns on fork+threads
+def test_batched_calls_work_in_a_forked_child_after_the_parent_used_the_pool():
+    # A DataLoader worker under the default 'fork' start method inherits rayon's pool without
+    # its threads: the core must notice and run sequentially instead of waiting forever.
+    import multiprocessing
+
+    g.farthest_point_sample(np.stack([cloud(3000, s) for s in range(4)]), 8)  # start the pool
+    g.chamfer(cloud(20000), cloud(20000))
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_batched_calls_in_child, args=(queue,))
+    child.start()
+    child.join(timeout=60)
+    hung = child.is_alive()
+    if hung:
+        child.kill()
+    assert not hung, "batched geometry hung in a forked child"
+    assert queue.get(timeout=5) == ((4, 16), (4, 2900, 3), (4, 3000), (0.0, 0.0))
