@@ -1,0 +1,84 @@
+"""Training checkpoints: plain dicts of tensors and builtins (``torch.load(weights_only=True)``).
+
+A checkpoint holds the configuration it was trained with, so ``load_checkpoint`` rebuilds the
+model with nothing else. Keys: ``format``, ``version``, ``config`` (``TrainConfig.to_dict()``),
+``model`` (generator state dict), ``discriminator`` (or ``None``), ``optimizer_g``,
+``optimizer_d``, ``scheduler_g``, ``scheduler_d``, ``epoch`` (epochs completed),
+``batches_done`` (batches of the current epoch already trained, for a mid-epoch resume),
+``epoch_sums`` (running loss sums of that epoch), ``best_metric``, ``history`` (per-epoch log
+rows), ``rng`` (torch CPU / CUDA generator states) and ``world_size``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from pfnet.errors import DataError
+from pfnet.io import atomic_path
+from pfnet.training.config import TrainConfig
+
+FORMAT = "pfnet-checkpoint"
+VERSION = 1
+
+
+def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:
+    """Write ``state`` atomically (temporary file in the same folder, then rename)."""
+    state = {"format": FORMAT, "version": VERSION, **state}
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> dict:
+    """Load a checkpoint dict with ``weights_only=True`` and check its format.
+
+    Raises:
+        DataError: Missing, unreadable or foreign file (naming the path).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"checkpoint {path} does not exist")
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as err:  # torch raises many types for corrupt or unsafe files
+        raise DataError(f"checkpoint {path} cannot be read: {err}") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise DataError(f"{path} is not a pfnet checkpoint")
+    if state.get("version") != VERSION:
+        raise DataError(
+            f"checkpoint {path} has format version {state.get('version')}; "
+            f"this pfnet reads version {VERSION}"
+        )
+    return state
+
+
+def load_checkpoint(
+    path: str | os.PathLike[str], device: str | torch.device = "cpu"
+) -> tuple[nn.Module, TrainConfig]:
+    """Rebuild the trained generator from a checkpoint.
+
+    Args:
+        path: A ``last.pt`` or ``best.pt`` written by ``pfnet train``.
+        device: Where to put the model.
+
+    Returns:
+        ``(model, config)``: the generator in eval mode on ``device`` and its
+        :class:`TrainConfig` (``model``, ``n_points``, ``n_missing``, ``missing_ratio``, ...).
+
+    Raises:
+        DataError: The file is missing, unreadable or not a pfnet checkpoint.
+    """
+    from pfnet.models import build_model
+
+    state = read_checkpoint(path, device)
+    config = TrainConfig.from_dict(state["config"], source=f"checkpoint {path}")
+    model = build_model(config)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as err:
+        raise DataError(f"checkpoint {path} does not match its model: {err}") from None
+    return model.to(device).eval(), config

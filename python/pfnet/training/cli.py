@@ -1,0 +1,110 @@
+"""``pfnet train``: train PF-Net or a baseline on a prepared dataset.
+
+The same command runs under ``torchrun --nproc_per_node N -m pfnet.cli train ...`` for
+DistributedDataParallel training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from pfnet.errors import ConfigError, DataError
+from pfnet.training.config import (
+    MODEL_NAMES,
+    PRESETS,
+    TRAIN_CROPS,
+    TrainConfig,
+    load_config,
+    preset_config,
+)
+
+HELP = "Train PF-Net or a baseline on a prepared dataset (one process, or DDP under torchrun)."
+
+# Command-line options that override a TrainConfig field of the same name.
+OVERRIDES: dict[str, tuple[type, str]] = {
+    "epochs": (int, "number of epochs"),
+    "batch_size": (int, "clouds per step (per process under torchrun)"),
+    "missing_ratio": (float, "fraction of points removed by the crop (default 0.25)"),
+    "seed": (int, "seed of initialisation, shuffling and crops (default 0)"),
+    "lr": (float, "Adam learning rate"),
+    "weight_decay": (float, "Adam weight decay"),
+    "width": (float, "network width multiplier (paper 1.0, small 0.25)"),
+    "lr_step": (int, "StepLR period in epochs"),
+    "lr_gamma": (float, "StepLR factor"),
+    "adversarial_weight": (float, "λ_adv of the joint loss (paper 0.05)"),
+    "workers": (int, "data-loader worker processes"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pfnet train``."""
+    parser.add_argument("--data", required=True, type=Path, help="dataset folder (pfnet prepare)")
+    parser.add_argument("--out", required=True, type=Path, help="run folder to write")
+    parser.add_argument("--model", choices=MODEL_NAMES, help="generator (default: pfnet)")
+    parser.add_argument("--preset", choices=tuple(PRESETS), help="base configuration (paper)")
+    parser.add_argument("--config", type=Path, help="TOML file of config keys over the preset")
+    parser.add_argument("--crop", choices=TRAIN_CROPS, help="training crop (default viewpoint)")
+    for name, (kind, text) in OVERRIDES.items():
+        flag = "--" + name.replace("_", "-")
+        parser.add_argument(flag, type=kind, dest=name, metavar=name.upper(), help=text)
+    parser.add_argument(
+        "--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N"
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its last.pt (only --epochs/--workers may change)",
+    )
+
+
+def build_config(args: argparse.Namespace) -> TrainConfig:
+    """The run's configuration: preset, then ``--config`` file, then explicit options.
+
+    With ``--resume`` the base is the run's stored ``config.json`` instead.
+    """
+    overrides = {name: getattr(args, name) for name in ("model", "crop", *OVERRIDES)}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if args.resume:
+        if args.preset or args.config:
+            raise ConfigError(
+                "--preset and --config cannot be combined with --resume "
+                "(the run's configuration is stored in it)"
+            )
+        stored = args.out / "config.json"
+        if not stored.is_file():
+            raise DataError(f"cannot resume: {stored} does not exist")
+        try:
+            data = json.loads(stored.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise DataError(f"cannot resume: {stored} is unreadable: {err}") from None
+        base = TrainConfig.from_dict(data, source=str(stored))
+    elif args.config is not None:
+        base = load_config(args.config, preset=args.preset)
+    else:
+        base = preset_config(args.preset or "paper")
+    return base.replace(**overrides)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train; print a one-line summary. Exit code 130 after Ctrl-C (the run is saved)."""
+    config = build_config(args)
+    from pfnet.training.loop import train
+
+    summary = train(config, args.data, args.out, device=args.device, resume=args.resume)
+    if summary["world_size"] > 1:
+        import os
+
+        if os.environ.get("RANK", "0") != "0":
+            return 130 if summary["interrupted"] else 0
+    best = summary["best_val_cd_l2"]
+    best_text = f"{best:.4g}" if best is not None else "n/a"
+    print(
+        f"trained {config.model} for {summary['epochs']} epoch(s) on "
+        f"{summary['world_size']} process(es); best val CD-L2 x1000 {best_text} "
+        f"(epoch {summary['best_epoch']}); run in {args.out}",
+        file=sys.stdout,
+    )
+    return 130 if summary["interrupted"] else 0

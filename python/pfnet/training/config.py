@@ -1,0 +1,282 @@
+"""Typed training configuration: presets, TOML files, command-line overrides, validation.
+
+Does not import torch, so the ``pfnet train`` parser and config errors stay cheap.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pfnet.errors import ConfigError
+
+MODEL_NAMES = ("pfnet", "pfnet-vanilla", "mlp", "cmlp", "mr-cmlp")
+TRAIN_CROPS = ("viewpoint", "sphere", "multi")
+# Fields that may change when a run is resumed; every other field must match the checkpoint.
+RESUMABLE_FIELDS = ("epochs", "workers")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (the device is passed separately).
+
+    The defaults are the ``paper`` preset: the authors' network and optimiser (DESIGN.md §4).
+
+    Attributes:
+        model: Generator name, one of ``MODEL_NAMES``.
+        preset: The preset the run started from (``paper`` or ``small``); informational.
+        n_points: N, points per complete cloud; ``None`` = taken from the dataset.
+        missing_ratio: Fraction of the N points removed by the crop; M = round(ratio · N).
+        width: Multiplier of every hidden layer (1.0 = the paper's network).
+        epochs: Number of epochs to train.
+        batch_size: Clouds per optimiser step (per process under DDP).
+        lr: Adam learning rate (generator and discriminator).
+        betas: Adam betas.
+        eps: Adam epsilon.
+        weight_decay: Adam weight decay (L2, as in ``torch.optim.Adam``).
+        lr_step: StepLR period in epochs.
+        lr_gamma: StepLR factor.
+        alpha_schedule: ``((first_epoch, alpha), ...)``: α of Eq. (2) from each epoch on.
+        adversarial_weight: λ_adv of Eq. (4); λ_com = 1 - λ_adv. Used by adversarial models.
+        loss_scale: Factor on every Chamfer term of the loss (authors: 100·(d1+d2)/2 → 50).
+        crop: Training crop: ``viewpoint`` (one of the five), ``sphere`` or ``multi`` region.
+        seed: Seed of initialisation, shuffling and crops.
+        workers: Data-loader worker processes.
+    """
+
+    model: str = "pfnet"
+    preset: str = "paper"
+    n_points: int | None = None
+    missing_ratio: float = 0.25
+    width: float = 1.0
+    epochs: int = 200
+    batch_size: int = 36
+    lr: float = 1e-4
+    betas: tuple[float, float] = (0.9, 0.999)
+    eps: float = 1e-5
+    weight_decay: float = 1e-3
+    lr_step: int = 40
+    lr_gamma: float = 0.2
+    alpha_schedule: tuple[tuple[int, float], ...] = field(
+        default=((0, 0.01), (30, 0.05), (80, 0.1))
+    )
+    adversarial_weight: float = 0.05
+    loss_scale: float = 50.0
+    crop: str = "viewpoint"
+    seed: int = 0
+    workers: int = 2
+
+    def __post_init__(self) -> None:
+        # Lists (TOML, JSON, checkpoints) become tuples so configs compare and hash.
+        if isinstance(self.betas, list):
+            object.__setattr__(self, "betas", tuple(self.betas))
+        if isinstance(self.alpha_schedule, list | tuple):
+            object.__setattr__(
+                self,
+                "alpha_schedule",
+                tuple(tuple(x) if isinstance(x, list | tuple) else x for x in self.alpha_schedule),
+            )
+        _validate(self)
+
+    @property
+    def n_missing(self) -> int:
+        """M, the number of missing points (``round(missing_ratio · n_points)``)."""
+        from pfnet.data import missing_count
+
+        if self.n_points is None:
+            raise ConfigError("n_points is not set (it is taken from the dataset when training)")
+        return missing_count(self.n_points, self.missing_ratio)
+
+    def replace(self, **changes: Any) -> TrainConfig:
+        """A copy with ``changes`` applied (``None`` values are ignored), validated."""
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
+        if unknown:
+            raise ConfigError(f"unknown config key(s) {', '.join(unknown)}; valid: {_valid_keys()}")
+        return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of builtins (lists, not tuples): JSON- and ``weights_only``-safe."""
+        out = dataclasses.asdict(self)
+        out["betas"] = list(self.betas)
+        out["alpha_schedule"] = [list(x) for x in self.alpha_schedule]
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, source: str = "config") -> TrainConfig:
+        """Build from a plain dict; unknown keys raise :class:`ConfigError` naming ``source``."""
+        if not isinstance(data, dict):
+            raise ConfigError(f"{source}: expected a table of settings, got {type(data).__name__}")
+        unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ConfigError(
+                f"{source}: unknown key(s) {', '.join(unknown)}; valid keys: {_valid_keys()}"
+            )
+        try:
+            return cls(**data)
+        except ConfigError as err:
+            raise ConfigError(f"{source}: {err}") from None
+
+
+def preset_config(name: str) -> TrainConfig:
+    """The configuration of preset ``name`` (``paper`` or ``small``)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+def load_config(path: str | Path, *, preset: str | None = None) -> TrainConfig:
+    """Read a TOML file of ``TrainConfig`` keys on top of a preset.
+
+    The preset is ``preset`` if given, else the file's ``preset`` key, else ``paper``. Keys
+    may sit at the top level or in a ``[train]`` table.
+
+    Raises:
+        ConfigError: Unreadable file, bad TOML, unknown keys or bad values (naming the file).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except OSError as err:
+        raise ConfigError(f"cannot read config file {path}: {err.strerror}") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"config file {path} is not valid TOML: {err}") from None
+    if set(data) == {"train"}:
+        data = data["train"]
+    base = preset_config(preset or data.get("preset", "paper"))
+    merged = base.to_dict()
+    if preset is not None:
+        data = {**data, "preset": preset}
+    merged.update(data)
+    return TrainConfig.from_dict(merged, source=f"config file {path}")
+
+
+def _valid_keys() -> str:
+    return ", ".join(f.name for f in dataclasses.fields(TrainConfig))
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return (_is_int(value) or isinstance(value, float)) and math.isfinite(value)
+
+
+def _require(ok: bool, key: str, value: Any, what: str) -> None:
+    if not ok:
+        raise ConfigError(f"{key} must be {what}; got {value!r}")
+
+
+def _validate(c: TrainConfig) -> None:
+    """Raise :class:`ConfigError` naming the first invalid value of ``c``."""
+    _require(c.model in MODEL_NAMES, "model", c.model, f"one of {', '.join(MODEL_NAMES)}")
+    _require(
+        isinstance(c.preset, str) and c.preset in ("paper", "small"),
+        "preset",
+        c.preset,
+        "'paper' or 'small'",
+    )
+    _require(
+        c.n_points is None or (_is_int(c.n_points) and c.n_points >= 8),
+        "n_points",
+        c.n_points,
+        "an integer >= 8 (or unset)",
+    )
+    _require(
+        _is_number(c.missing_ratio) and 0 < c.missing_ratio < 1,
+        "missing_ratio",
+        c.missing_ratio,
+        "a number in (0, 1)",
+    )
+    _require(_is_number(c.width) and 0 < c.width <= 4, "width", c.width, "a number in (0, 4]")
+    _require(_is_int(c.epochs) and c.epochs >= 1, "epochs", c.epochs, "an integer >= 1")
+    _require(
+        _is_int(c.batch_size) and c.batch_size >= 1, "batch_size", c.batch_size, "an integer >= 1"
+    )
+    _require(_is_number(c.lr) and 0 < c.lr <= 1, "lr", c.lr, "a number in (0, 1]")
+    _require(
+        isinstance(c.betas, tuple)
+        and len(c.betas) == 2
+        and all(_is_number(b) and 0 <= b < 1 for b in c.betas),
+        "betas",
+        c.betas,
+        "two numbers in [0, 1)",
+    )
+    _require(_is_number(c.eps) and c.eps > 0, "eps", c.eps, "a positive number")
+    _require(
+        _is_number(c.weight_decay) and c.weight_decay >= 0,
+        "weight_decay",
+        c.weight_decay,
+        "a number >= 0",
+    )
+    _require(_is_int(c.lr_step) and c.lr_step >= 1, "lr_step", c.lr_step, "an integer >= 1")
+    _require(
+        _is_number(c.lr_gamma) and 0 < c.lr_gamma <= 1, "lr_gamma", c.lr_gamma, "a number in (0, 1]"
+    )
+    schedule = c.alpha_schedule
+    _require(
+        isinstance(schedule, tuple)
+        and len(schedule) >= 1
+        and all(
+            isinstance(s, tuple)
+            and len(s) == 2
+            and _is_int(s[0])
+            and s[0] >= 0
+            and _is_number(s[1])
+            and s[1] >= 0
+            for s in schedule
+        )
+        and schedule[0][0] == 0
+        and all(a[0] < b[0] for a, b in zip(schedule[:-1], schedule[1:], strict=True)),
+        "alpha_schedule",
+        schedule,
+        "a list of [first_epoch, alpha] pairs with integer epochs increasing from 0 "
+        "and alphas >= 0",
+    )
+    _require(
+        _is_number(c.adversarial_weight) and 0 <= c.adversarial_weight < 1,
+        "adversarial_weight",
+        c.adversarial_weight,
+        "a number in [0, 1)",
+    )
+    _require(
+        _is_number(c.loss_scale) and c.loss_scale > 0,
+        "loss_scale",
+        c.loss_scale,
+        "a positive number",
+    )
+    _require(c.crop in TRAIN_CROPS, "crop", c.crop, f"one of {', '.join(TRAIN_CROPS)}")
+    _require(_is_int(c.seed) and c.seed >= 0, "seed", c.seed, "an integer >= 0")
+    _require(_is_int(c.workers) and c.workers >= 0, "workers", c.workers, "an integer >= 0")
+    if c.n_points is not None:
+        m = c.n_missing
+        if not 1 <= m <= c.n_points - 4:
+            raise ConfigError(
+                f"missing_ratio {c.missing_ratio} of {c.n_points} points removes {m} points; "
+                f"at least 1 must be missing and 4 must remain"
+            )
+
+
+PRESETS: dict[str, TrainConfig] = {
+    "paper": TrainConfig(),
+    # A narrow network and a short schedule that learn something in minutes on 2 CPU cores.
+    "small": TrainConfig(
+        preset="small",
+        width=0.25,
+        epochs=30,
+        batch_size=16,
+        lr=1e-3,
+        weight_decay=0.0,
+        lr_step=20,
+        lr_gamma=0.2,
+        alpha_schedule=((0, 0.01), (10, 0.05), (20, 0.1)),
+        workers=0,
+    ),
+}

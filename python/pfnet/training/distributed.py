@@ -1,0 +1,107 @@
+"""DistributedDataParallel support: the same ``pfnet train`` under ``torchrun``.
+
+``torchrun --nproc_per_node N -m pfnet.cli train ...`` sets ``RANK``, ``WORLD_SIZE``,
+``LOCAL_RANK`` and the rendezvous variables; :func:`setup` then joins the process group
+(gloo on the CPU, nccl on CUDA). Without them training runs in one process.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+from pfnet.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class DistContext:
+    """Where this process sits in a (possibly single-process) run.
+
+    Attributes:
+        rank: Global rank (0 in a single process).
+        world_size: Number of processes.
+        local_rank: Rank on this machine (selects the GPU).
+        device: The device this process trains on.
+    """
+
+    rank: int
+    world_size: int
+    local_rank: int
+    device: torch.device
+
+    @property
+    def distributed(self) -> bool:
+        """Whether a process group with more than one process is active."""
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        """Rank 0: the only process that writes files and shows progress."""
+        return self.rank == 0
+
+
+def resolve_device(device: str | torch.device, local_rank: int = 0) -> torch.device:
+    """``auto`` -> ``cuda:<local_rank>`` if CUDA is available, else ``cpu``; checks ``cuda``.
+
+    Raises:
+        ConfigError: Unknown device string, or CUDA requested but not available.
+    """
+    name = str(device)
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device {device!r} requested but CUDA is not available")
+        return torch.device(name if ":" in name else f"cuda:{local_rank}")
+    if name != "cpu":
+        raise ConfigError(f"device must be auto, cpu, cuda or cuda:N; got {device!r}")
+    return torch.device("cpu")
+
+
+def setup(device: str | torch.device = "auto") -> DistContext:
+    """Join the torchrun process group if there is one and pick this process's device."""
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    resolved = resolve_device(device, local_rank)
+    if world_size > 1 and not dist.is_initialized():
+        if resolved.type == "cuda":
+            torch.cuda.set_device(resolved)
+        dist.init_process_group(backend="nccl" if resolved.type == "cuda" else "gloo")
+    return DistContext(rank, world_size, local_rank, resolved)
+
+
+def teardown(context: DistContext) -> None:
+    """Leave the process group joined by :func:`setup`."""
+    if context.distributed and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def any_rank(flag: bool, context: DistContext) -> bool:
+    """True on every rank if ``flag`` is true on any rank (e.g. a Ctrl-C seen by one)."""
+    if not context.distributed:
+        return flag
+    value = torch.tensor([1.0 if flag else 0.0], device=context.device)
+    dist.all_reduce(value, op=dist.ReduceOp.MAX)
+    return bool(value.item() > 0)
+
+
+def all_gather_objects(obj: object, context: DistContext) -> list[object]:
+    """Every rank's ``obj``, in rank order (``[obj]`` in a single process)."""
+    if not context.distributed:
+        return [obj]
+    gathered: list[object] = [None] * context.world_size
+    dist.all_gather_object(gathered, obj)
+    return gathered
+
+
+def broadcast_object(obj: object, context: DistContext) -> object:
+    """Rank 0's ``obj`` on every rank."""
+    if not context.distributed:
+        return obj
+    box = [obj]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]

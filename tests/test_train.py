@@ -1,0 +1,192 @@
+"""`pfnet train` and the training loop on the procedural `tiny_dataset` (CPU)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from pfnet.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
+from pfnet.cli import main  # noqa: E402
+from pfnet.errors import ConfigError, DataError  # noqa: E402
+from pfnet.models import MODELS  # noqa: E402
+from pfnet.training import preset_config, train  # noqa: E402
+from pfnet.training.loop import TrainingStep  # noqa: E402
+
+# The small preset with more, smaller batches: ~6 steps per epoch on the 24 training shapes.
+FAST = preset_config("small").replace(batch_size=4, epochs=12)
+
+
+def _rows(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+
+
+def _without_times(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "time_s"} for row in rows]
+
+
+@pytest.mark.slow
+def test_pfnet_learns_on_the_tiny_dataset(tiny_dataset: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    summary = train(FAST, tiny_dataset, run, device="cpu", progress=False)
+    rows = _rows(run)
+    assert [r["epoch"] for r in rows] == list(range(13))
+    untrained = rows[0]["val_cd_l2"]
+    assert summary["best_val_cd_l2"] < 0.6 * untrained
+    assert rows[-1]["val_cd_l2"] < untrained
+    assert min(r["cd_detail"] for r in rows[-5:]) < 0.6 * rows[1]["cd_detail"]
+    assert {"loss_d", "adv_g", "cd_primary", "cd_secondary", "lr", "alpha"} <= set(rows[1])
+    assert summary["epochs"] == 12 and not summary["interrupted"]
+    for name in ("last.pt", "best.pt", "log.jsonl", "curves.png", "config.json"):
+        assert (run / name).stat().st_size > 0
+    assert (run / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [p for p in run.iterdir() if p.name.startswith(".")]  # no temporary files left
+    best = read_checkpoint(run / "best.pt")
+    assert best["epoch"] == summary["best_epoch"]
+    assert best["history"][-1]["val_cd_l2"] == summary["best_val_cd_l2"]
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_every_model_trains_through_the_cli_and_reloads(
+    name: str, tiny_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / name
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--preset", "small"]
+    argv += ["--model", name, "--epochs", "1", "--batch-size", "9", "--width", "0.125"]
+    assert main([*argv, "--device", "cpu"]) == 0
+    assert f"trained {name} for 1 epoch(s) on 1 process(es)" in capsys.readouterr().out
+    # A plain weights_only load: no pickled code in the checkpoint.
+    raw = torch.load(run / "last.pt", weights_only=True)
+    assert raw["config"]["model"] == name and raw["epoch"] == 1
+    assert (raw["discriminator"] is not None) == (name == "pfnet")
+    model, config = load_checkpoint(run / "best.pt")
+    assert not model.training and type(model) is MODELS[name]
+    assert (config.n_points, config.n_missing, config.missing_ratio) == (512, 128, 0.25)
+    with torch.no_grad():
+        assert model(torch.rand(1, 384, 3)).detail.shape == (1, 128, 3)
+    rows = _rows(run)
+    assert len(rows) == 2 and all(map(torch.isfinite, map(torch.tensor, rows[1].values())))
+
+
+def _interrupt_at(monkeypatch: pytest.MonkeyPatch, call: int) -> None:
+    """Deliver a real SIGINT during the ``call``-th training step."""
+    original = TrainingStep.__call__
+    calls = []
+
+    def step(self, batch, alpha):
+        calls.append(1)
+        if len(calls) == call:
+            signal.raise_signal(signal.SIGINT)
+        return original(self, batch, alpha)
+
+    monkeypatch.setattr(TrainingStep, "__call__", step)
+
+
+def test_ctrl_c_saves_and_resume_equals_an_uninterrupted_run(
+    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = FAST.replace(epochs=2, batch_size=5, width=0.125)  # 5 steps per epoch
+    whole = tmp_path / "whole"
+    train(config, tiny_dataset, whole, device="cpu", progress=False)
+
+    split = tmp_path / "split"
+    with monkeypatch.context() as patch:
+        _interrupt_at(patch, 7)  # epoch 2, batch 2
+        summary = train(config, tiny_dataset, split, device="cpu", progress=False)
+    assert summary["interrupted"] and summary["epochs"] == 1 and summary["batches_done"] == 2
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+    state = read_checkpoint(split / "last.pt")
+    assert (state["epoch"], state["batches_done"]) == (1, 2)
+
+    resumed = train(config, tiny_dataset, split, device="cpu", progress=False, resume=True)
+    assert not resumed["interrupted"] and resumed["epochs"] == 2
+    assert _without_times(_rows(split)) == _without_times(_rows(whole))
+    a = read_checkpoint(whole / "last.pt")
+    b = read_checkpoint(split / "last.pt")
+    for key in ("model", "discriminator"):
+        for name, tensor in a[key].items():
+            assert torch.equal(tensor, b[key][name]), f"{key}.{name}"
+
+
+def test_ctrl_c_through_the_cli_exits_130_and_resume_extends_the_run(
+    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run = tmp_path / "run"
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--preset", "small"]
+    argv += ["--model", "mlp", "--epochs", "1", "--batch-size", "8", "--width", "0.125"]
+    with monkeypatch.context() as patch:
+        _interrupt_at(patch, 2)
+        assert main(argv) == 130
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(run), "--resume"]) == 0
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(run), "--resume",
+                 "--epochs", "2"]) == 0  # fmt: skip
+    assert [r["epoch"] for r in _rows(run)] == [0, 1, 2]
+
+
+def test_run_folder_and_resume_errors(tiny_dataset: Path, tmp_path: Path) -> None:
+    config = FAST.replace(model="mlp", epochs=1, width=0.125)
+    run = tmp_path / "run"
+    with pytest.raises(DataError, match="last.pt does not exist"):
+        train(config, tiny_dataset, run, device="cpu", resume=True)
+    train(config, tiny_dataset, run, device="cpu", progress=False)
+    with pytest.raises(ConfigError, match="already holds a run .*pass --resume"):
+        train(config, tiny_dataset, run, device="cpu")
+    with pytest.raises(ConfigError, match="cannot change lr when resuming: .* trained with 0.001"):
+        train(config.replace(lr=0.5), tiny_dataset, run, device="cpu", resume=True)
+    afile = tmp_path / "file"
+    afile.write_text("x")
+    with pytest.raises(ConfigError, match="exists and is not a folder"):
+        train(config, tiny_dataset, afile, device="cpu")
+
+
+def test_bad_data_and_sizes_are_rejected(tiny_dataset: Path, tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="nowhere"):
+        train(FAST, tmp_path / "nowhere", tmp_path / "run", device="cpu")
+    with pytest.raises(ConfigError, match="n_points is 2048 but the clouds in .* have 512"):
+        train(FAST.replace(n_points=2048), tiny_dataset, tmp_path / "run", device="cpu")
+    # 0.3 · 512 = 154 missing points: the pyramid decoder needs a multiple of 128.
+    with pytest.raises(ConfigError, match="model 'pfnet' with 512 points and missing_ratio 0.3"):
+        train(FAST.replace(missing_ratio=0.3), tiny_dataset, tmp_path / "run", device="cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA is not available"):
+            train(FAST, tiny_dataset, tmp_path / "run", device="cuda")
+    with pytest.raises(ConfigError, match="device must be auto, cpu, cuda"):
+        train(FAST, tiny_dataset, tmp_path / "run", device="tpu")
+
+
+def test_cli_reports_errors_in_one_line(
+    tiny_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "r")]
+    assert main([*argv, "--epochs", "0"]) == 1
+    assert "pfnet train: error: epochs must be an integer >= 1; got 0" in capsys.readouterr().err
+    assert main([*argv, "--preset", "small", "--missing-ratio", "0.3"]) == 1
+    assert "multiple of 128" in capsys.readouterr().err
+
+
+def test_a_last_batch_of_one_trains(tiny_dataset: Path, tmp_path: Path) -> None:
+    # 24 training shapes in batches of 23: the second batch holds one cloud. One loader
+    # worker: batches are made in another process (started by a fork server).
+    config = FAST.replace(epochs=1, batch_size=23, width=0.125, workers=1)
+    summary = train(config, tiny_dataset, tmp_path / "run", device="cpu", progress=False)
+    assert summary["epochs"] == 1
+    assert torch.isfinite(torch.tensor(summary["final"]["loss_g"]))
+
+
+def test_an_empty_val_split_trains_without_validation(tiny_dataset: Path, tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    empty = np.zeros(0, "<U1")
+    np.savez(data / "val.npz", points=np.zeros((0, 512, 3), np.float32), category=empty, name=empty)
+    config = FAST.replace(model="mlp", epochs=1, width=0.125)
+    summary = train(config, data, tmp_path / "run", device="cpu", progress=False)
+    assert summary["best_val_cd_l2"] is None and summary["best_epoch"] == 1
+    rows = _rows(tmp_path / "run")
+    assert rows[0] == {"epoch": 0} and "val_cd_l2" not in rows[1]
+    assert (tmp_path / "run" / "best.pt").is_file()
