@@ -21,6 +21,13 @@ from pfnet.errors import PfnetError
 
 # name -> module implementing HELP / add_arguments / run
 COMMANDS: dict[str, str] = {
+    "prepare": "pfnet.data.cli",
+    "train": "pfnet.training.cli",
+    "predict": "pfnet.predict",
+    "complete": "pfnet.complete",
+    "evaluate": "pfnet.evaluate",
+    "render": "pfnet.render",
+    "demo": "pfnet.demo",
 }
 
 

@@ -1,0 +1,421 @@
+"""``pfnet evaluate``: score any method's prediction folder against a data set.
+
+A prediction folder holds one file per sample, ``PRED/<category>/<name>.<ext>`` with ``ext``
+one of ``.npy .ply .xyz .pts .txt`` (the first found in that order). The ground truth comes
+from the deterministic test protocol (DESIGN.md §3, :func:`pfnet.data.test_protocol_crop`):
+sample *i* of the split loses the ``round(r·N)`` points nearest ``VIEWPOINTS[i % 5]``.
+
+Regions (DESIGN.md §5):
+
+* ``missing``: the file holds the predicted missing region (any point count), scored
+  against the removed points.
+* ``whole``: the file holds the predicted missing region, merged with the partial input
+  before scoring, or (``--pred-is-complete``) a full completion; scored against the complete
+  cloud.
+
+Scores come from :func:`pfnet.metrics.sample_metrics` and :func:`pfnet.metrics.summarize`:
+per-category means, and the unweighted mean of the category means, Pred→GT and GT→Pred
+reported ×1000 as in the paper's tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import ConfigError, DataError
+
+HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
+
+PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".xyz", ".pts", ".txt")
+"""Suffixes a prediction file may have, in the order they are looked for."""
+
+REGIONS = ("missing", "whole")
+SCALE = 1000
+_JSON_METRICS = ("pred_to_gt", "gt_to_pred", "cd_l1", "f_score")
+
+
+@dataclass
+class Evaluation:
+    """The outcome of :func:`evaluate_predictions`.
+
+    Attributes:
+        report: The JSON document written by ``--json`` (schema in the README).
+        categories: Category of each scored sample, ``(K,)``.
+        names: Name of each scored sample, ``(K,)``.
+        per_sample: Raw per-sample metrics (float64 ``(K,)`` arrays, not scaled).
+        missing: ``<category>/<name>`` of samples without a prediction file.
+        unreadable: ``<category>/<name>`` of samples whose file could not be used.
+        reasons: Why each unreadable file was rejected (one line each).
+        unmatched: Prediction files that match no sample of the split.
+        n_samples: Number of samples in the split.
+    """
+
+    report: dict
+    categories: list[str]
+    names: list[str]
+    per_sample: dict[str, np.ndarray]
+    missing: list[str] = field(default_factory=list)
+    unreadable: list[str] = field(default_factory=list)
+    reasons: list[str] = field(default_factory=list)
+    unmatched: list[str] = field(default_factory=list)
+    n_samples: int = 0
+
+
+def find_prediction_files(pred_dir: Path) -> dict[str, Path]:
+    """Map ``<category>/<name>`` to its prediction file (first suffix in PREDICTION_SUFFIXES)."""
+    rank = {s: i for i, s in enumerate(PREDICTION_SUFFIXES)}
+    found: dict[str, tuple[int, Path]] = {}
+    with os.scandir(pred_dir) as categories:
+        for cat in categories:
+            if not cat.is_dir() or cat.name.startswith("."):
+                continue
+            with os.scandir(cat.path) as files:
+                for entry in files:
+                    stem, suffix = os.path.splitext(entry.name)
+                    suffix = suffix.lower()
+                    if suffix not in rank or entry.name.startswith("."):
+                        continue
+                    key = f"{cat.name}/{stem}"
+                    if key not in found or rank[suffix] < found[key][0]:
+                        found[key] = (rank[suffix], Path(entry.path))
+    return {key: path for key, (_, path) in found.items()}
+
+
+def _load(path: Path) -> np.ndarray | str:
+    from pfnet.io import read_point_cloud
+
+    try:
+        return read_point_cloud(path)
+    except DataError as err:
+        return str(err)
+
+
+def evaluate_predictions(
+    pred_dir: str | os.PathLike[str],
+    data_dir: str | os.PathLike[str],
+    *,
+    split: str = "test",
+    missing_ratio: float = 0.25,
+    region: str = "missing",
+    pred_is_complete: bool = False,
+    f_threshold: float = 0.01,
+    workers: int | None = None,
+) -> Evaluation:
+    """Score the prediction files in ``pred_dir`` against split ``split`` of ``data_dir``.
+
+    Args:
+        pred_dir: Folder of ``<category>/<name>.<ext>`` prediction files.
+        data_dir: A prepared data set (DESIGN.md §3).
+        split: ``train``, ``val`` or ``test``.
+        missing_ratio: Fraction of points the test protocol removes, in ``(0, 1)``.
+        region: ``"missing"`` or ``"whole"``.
+        pred_is_complete: With ``region="whole"``, files hold full completions and are
+            scored as they are instead of being merged with the partial input.
+        f_threshold: Distance threshold of the F-score.
+        workers: Threads reading files (default: ``min(8, cpu count + 4)``).
+
+    Returns:
+        An :class:`Evaluation`; samples without a usable file are listed, not scored.
+
+    Raises:
+        ConfigError: For a bad region, ratio or flag combination.
+        DataError: If the folders are missing, or no prediction at all could be scored.
+    """
+    from pfnet.data import load_split, test_protocol_crop
+    from pfnet.metrics import sample_metrics, summarize
+
+    if region not in REGIONS:
+        raise ConfigError(f"evaluate: --region must be one of {REGIONS}, got {region!r}")
+    if pred_is_complete and region != "whole":
+        raise ConfigError("evaluate: --pred-is-complete needs --region whole")
+    if not 0.0 < missing_ratio < 1.0:
+        raise ConfigError(f"evaluate: --missing-ratio must be in (0, 1), got {missing_ratio}")
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise DataError(f"evaluate: prediction folder {pred_dir} does not exist")
+    clouds = load_split(data_dir, split)
+    points = np.asarray(clouds.points)
+    sample_keys = [f"{c}/{n}" for c, n in zip(clouds.category, clouds.name, strict=True)]
+    partial, removed = test_protocol_crop(points, missing_ratio)
+
+    files = find_prediction_files(pred_dir)
+    wanted = set(sample_keys)
+    unmatched = sorted(str(p) for k, p in files.items() if k not in wanted)
+    present = [i for i, key in enumerate(sample_keys) if key in files]
+    missing = [key for key in sample_keys if key not in files]
+    n_workers = workers or min(8, (os.cpu_count() or 1) + 4)
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        loaded = list(pool.map(_load, [files[sample_keys[i]] for i in present], chunksize=64))
+
+    preds, gts, scored, unreadable, reasons = [], [], [], [], []
+    for i, cloud in zip(present, loaded, strict=True):
+        if isinstance(cloud, str):
+            unreadable.append(sample_keys[i])
+            reasons.append(cloud)
+            continue
+        if region == "missing":
+            preds.append(cloud)
+            gts.append(removed[i])
+        else:
+            preds.append(cloud if pred_is_complete else np.concatenate([partial[i], cloud]))
+            gts.append(points[i])
+        scored.append(i)
+    if not scored:
+        raise DataError(
+            f"evaluate: no prediction in {pred_dir} could be scored against {split!r} of "
+            f"{data_dir} ({len(missing)} missing, {len(unreadable)} unreadable of "
+            f"{len(sample_keys)} samples; expected files like "
+            f"{pred_dir / sample_keys[0]}.npy)"
+            if sample_keys
+            else f"evaluate: split {split!r} of {data_dir} has no samples"
+        )
+    categories = [str(clouds.category[i]) for i in scored]
+    per_sample = sample_metrics(_stack_if_equal(preds), _stack_if_equal(gts), f_threshold)
+    summary = summarize(per_sample, categories, scale=float(SCALE))
+    report = {
+        "region": region,
+        "scale": SCALE,
+        "missing_ratio": float(missing_ratio),
+        "categories": {
+            cat: {"n": int(row["n"]), **{k: float(row[k]) for k in _JSON_METRICS}}
+            for cat, row in summary["categories"].items()
+        },
+        "mean": {k: float(summary["mean"][k]) for k in _JSON_METRICS},
+        "missing": missing,
+        "unreadable": unreadable,
+    }
+    return Evaluation(
+        report=report,
+        categories=categories,
+        names=[str(clouds.name[i]) for i in scored],
+        per_sample={k: np.asarray(v, dtype=np.float64) for k, v in per_sample.items()},
+        missing=missing,
+        unreadable=unreadable,
+        reasons=reasons,
+        unmatched=unmatched,
+        n_samples=len(sample_keys),
+    )
+
+
+def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:
+    """One ``(B, P, 3)`` array when every cloud has the same size (the fast batched path)."""
+    if len({len(c) for c in clouds}) == 1:
+        return np.stack(clouds)
+    return clouds
+
+
+def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
+    """The paper-like table: per category Pred→GT / GT→Pred ×1000, n, CD-L2, CD-L1, F-score."""
+    from pfnet.metrics import summarize
+
+    summary = summary or summarize(evaluation.per_sample, evaluation.categories, scale=float(SCALE))
+    header = (
+        f"{'category':<16} {'n':>5} {'Pred→GT':>9} {'GT→Pred':>9} "
+        f"{'CD-L2':>9} {'CD-L1':>9} {'F@0.01':>7}"
+    )
+    lines = [header, "-" * len(header)]
+
+    def row(name: str, n: str, m: dict) -> str:
+        return (
+            f"{name:<16} {n:>5} {m['pred_to_gt']:>9.3f} {m['gt_to_pred']:>9.3f} "
+            f"{m['cd_l2']:>9.3f} {m['cd_l1'] * SCALE:>9.3f} {m['f_score']:>7.3f}"
+        )
+
+    for cat in sorted(summary["categories"]):
+        m = summary["categories"][cat]
+        lines.append(row(cat, str(int(m["n"])), m))
+    lines.append("-" * len(header))
+    lines.append(row("mean", str(len(evaluation.categories)), summary["mean"]))
+    return "\n".join(lines)
+
+
+def write_csv(path: Path, evaluation: Evaluation) -> None:
+    """Per-sample scores: category, name and the metrics (×1000 except the F-score)."""
+    from pfnet.io import atomic_path
+
+    keys = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(["category", "name", *keys, "f_score"])
+            ps = evaluation.per_sample
+            for i, (cat, name) in enumerate(
+                zip(evaluation.categories, evaluation.names, strict=True)
+            ):
+                values = [f"{ps[k][i] * SCALE:.6f}" for k in keys]
+                writer.writerow([cat, name, *values, f"{ps['f_score'][i]:.6f}"])
+
+
+def write_json(path: Path, report: dict) -> None:
+    """Write the ``--json`` report atomically."""
+    from pfnet.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+
+
+def render_evaluation_gallery(
+    out: Path,
+    evaluation: Evaluation,
+    pred_dir: Path,
+    data_dir: Path,
+    *,
+    split: str,
+    missing_ratio: float,
+    count: int,
+) -> Path:
+    """Render ``count`` scored samples (spread over the categories) as partial/pred/gt rows."""
+    from pfnet.data import load_split, test_protocol_crop
+    from pfnet.io import read_point_cloud
+    from pfnet.render import RenderSample, render_gallery
+
+    clouds = load_split(data_dir, split)
+    index = {
+        (str(c), str(n)): i
+        for i, (c, n) in enumerate(zip(clouds.category, clouds.name, strict=True))
+    }
+    chosen = pick_gallery(evaluation.categories, count)
+    rows = [index[(evaluation.categories[k], evaluation.names[k])] for k in chosen]
+    points = np.asarray(clouds.points)
+    # Crop the whole split: sample i's viewpoint depends on its index in the split.
+    partial, _ = test_protocol_crop(points, missing_ratio)
+    files = find_prediction_files(pred_dir)
+    samples = []
+    for i, k in zip(rows, chosen, strict=True):
+        key = f"{evaluation.categories[k]}/{evaluation.names[k]}"
+        samples.append(RenderSample(key, partial[i], read_point_cloud(files[key]), points[i]))
+    return render_gallery(
+        out, samples, title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing"
+    )
+
+
+def pick_gallery(categories: list[str], count: int) -> list[int]:
+    """Indices of up to ``count`` samples taken round-robin over the categories (sorted)."""
+    by_cat: dict[str, list[int]] = {}
+    for i, cat in enumerate(categories):
+        by_cat.setdefault(cat, []).append(i)
+    queues = [by_cat[c] for c in sorted(by_cat)]
+    picked: list[int] = []
+    depth = 0
+    while len(picked) < count and any(depth < len(q) for q in queues):
+        picked += [q[depth] for q in queues if depth < len(q)][: count - len(picked)]
+        depth += 1
+    return picked
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pfnet evaluate``."""
+    parser.add_argument("pred", type=Path, help="prediction folder PRED/<category>/<name>.<ext>")
+    parser.add_argument("--data", type=Path, required=True, help="prepared data set folder")
+    parser.add_argument("--split", default="test", help="split to score (default: test)")
+    parser.add_argument(
+        "--missing-ratio",
+        type=float,
+        default=0.25,
+        help="fraction of points the test protocol removes (default: 0.25)",
+    )
+    parser.add_argument(
+        "--region", choices=REGIONS, default="missing", help="region scored (default: missing)"
+    )
+    parser.add_argument(
+        "--pred-is-complete",
+        action="store_true",
+        help="with --region whole: files hold full completions, not the missing region",
+    )
+    parser.add_argument("--json", type=Path, default=None, help="write the summary as JSON")
+    parser.add_argument("--csv", type=Path, default=None, help="write per-sample scores as CSV")
+    parser.add_argument(
+        "--allow-missing",
+        action="store_true",
+        help="exit 0 even if some prediction files are missing or unreadable",
+    )
+    parser.add_argument("--gallery", type=Path, default=None, help="render samples into a PNG")
+    parser.add_argument(
+        "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
+    )
+    parser.add_argument("--workers", type=int, default=None, help="file-reading threads")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
+    from pfnet.metrics import summarize
+
+    if args.gallery is not None and args.gallery_count < 1:
+        raise ConfigError(f"evaluate: --gallery-count must be at least 1, got {args.gallery_count}")
+    evaluation = evaluate_predictions(
+        args.pred,
+        args.data,
+        split=args.split,
+        missing_ratio=args.missing_ratio,
+        region=args.region,
+        pred_is_complete=args.pred_is_complete,
+        workers=args.workers,
+    )
+    summary = summarize(evaluation.per_sample, evaluation.categories, scale=float(SCALE))
+    n_scored = len(evaluation.categories)
+    print(
+        f"{args.pred} vs {args.data} [{args.split}]: region {args.region}, "
+        f"{args.missing_ratio:.0%} missing, {n_scored} of {evaluation.n_samples} samples scored"
+    )
+    print("Pred→GT, GT→Pred, CD-L2, CD-L1 ×1000; F-score at distance 0.01")
+    print(format_table(evaluation, summary))
+    if args.json is not None:
+        write_json(args.json, evaluation.report)
+        print(f"wrote {args.json}")
+    if args.csv is not None:
+        write_csv(args.csv, evaluation)
+        print(f"wrote {args.csv}")
+    if args.gallery is not None:
+        path = render_evaluation_gallery(
+            args.gallery,
+            evaluation,
+            args.pred,
+            args.data,
+            split=args.split,
+            missing_ratio=args.missing_ratio,
+            count=args.gallery_count,
+        )
+        print(f"wrote {path}")
+    problems = _report_problems(evaluation)
+    if problems and not args.allow_missing:
+        print(
+            "pfnet evaluate: some samples were not scored (pass --allow-missing to accept)",
+            file=sys.stderr,
+        )
+        return 2
+    return 0
+
+
+def _report_problems(evaluation: Evaluation, limit: int = 20) -> bool:
+    """Print missing, unreadable and unmatched files to stderr; True if samples went unscored."""
+    if evaluation.unmatched:
+        print(
+            f"warning: {len(evaluation.unmatched)} prediction file(s) match no sample, "
+            f"e.g. {evaluation.unmatched[0]}",
+            file=sys.stderr,
+        )
+    if evaluation.missing:
+        shown = ", ".join(evaluation.missing[:limit])
+        more = (
+            f" and {len(evaluation.missing) - limit} more"
+            if len(evaluation.missing) > limit
+            else ""
+        )
+        print(
+            f"missing: {len(evaluation.missing)} sample(s) have no prediction file: {shown}{more}",
+            file=sys.stderr,
+        )
+    for reason in evaluation.reasons[:limit]:
+        print(f"unreadable: {reason}", file=sys.stderr)
+    if len(evaluation.reasons) > limit:
+        print(f"unreadable: and {len(evaluation.reasons) - limit} more", file=sys.stderr)
+    return bool(evaluation.missing or evaluation.unreadable)

@@ -1,0 +1,228 @@
+"""``pfnet predict``: run a trained model over a data set split with the test protocol.
+
+Sample *i* of the split loses the ``round(r·N)`` points nearest ``VIEWPOINTS[i % 5]``
+(:func:`pfnet.data.test_protocol_crop`, DESIGN.md §3); the model predicts the missing region
+from the rest. Output, ready for ``pfnet evaluate``::
+
+    PRED/<category>/<name>.npy    float32 (M, 3) predicted missing region, one per sample
+    PRED/predictions.json         checkpoint, data, split, protocol and model
+
+The run is deterministic: no random numbers are drawn, and the model is in eval mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pfnet.errors import ConfigError, DataError
+
+HELP = "Predict the missing region of every sample of a data set split (test protocol)."
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def config_value(config: Any, key: str) -> Any:
+    """Read ``key`` from a checkpoint's config, whether a dataclass or a plain dict."""
+    if isinstance(config, dict):
+        return config.get(key)
+    return getattr(config, key, None)
+
+
+def resolve_device(name: str) -> str:
+    """``auto`` → ``cuda`` if available else ``cpu``; ``cuda`` without a GPU is an error."""
+    import torch
+
+    if name not in DEVICES:
+        raise ConfigError(f"--device must be one of {', '.join(DEVICES)}, got {name!r}")
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: no CUDA device is available (use --device cpu)")
+    return name
+
+
+def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: str) -> np.ndarray:
+    """Run ``model`` over ``partial`` clouds in batches.
+
+    Args:
+        model: A completion model in eval mode (``forward(partial) -> Completion``).
+        partial: float32 ``(S, n, 3)`` partial clouds.
+        batch_size: Clouds per forward pass.
+        device: Torch device the model lives on.
+
+    Returns:
+        float32 ``(S, M, 3)`` predicted missing regions.
+    """
+    import torch
+    from tqdm import tqdm
+
+    if batch_size < 1:
+        raise ConfigError(f"--batch-size must be at least 1, got {batch_size}")
+    outputs = []
+    starts = range(0, len(partial), batch_size)
+    with torch.inference_mode():
+        for start in tqdm(starts, desc="predict", unit="batch", disable=None, leave=False):
+            batch = torch.from_numpy(np.ascontiguousarray(partial[start : start + batch_size]))
+            completion = model(batch.to(device=device, dtype=torch.float32))
+            outputs.append(completion.detail.float().cpu().numpy())
+    return np.concatenate(outputs).astype(np.float32, copy=False)
+
+
+def predict_split(
+    checkpoint: str | os.PathLike[str],
+    data_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    split: str = "test",
+    missing_ratio: float | None = None,
+    batch_size: int = 32,
+    device: str = "auto",
+) -> dict:
+    """Predict every sample of ``split`` and write ``out_dir`` (see the module docstring).
+
+    Args:
+        checkpoint: A checkpoint written by ``pfnet train``.
+        data_dir: A prepared data set.
+        out_dir: Prediction folder to create or fill (existing files are replaced).
+        split: ``train``, ``val`` or ``test``.
+        missing_ratio: Ratio of the test crop; default: the checkpoint's training ratio.
+        batch_size: Clouds per forward pass.
+        device: ``auto``, ``cpu`` or ``cuda``.
+
+    Returns:
+        The ``predictions.json`` document.
+
+    Raises:
+        ConfigError: Bad device, batch size or ratio.
+        DataError: Unreadable checkpoint or data set.
+    """
+    from pfnet.checkpoint import load_checkpoint
+    from pfnet.data import load_split, test_protocol_crop
+    from pfnet.io import atomic_path, save_npy
+
+    device = resolve_device(device)
+    model, config = load_checkpoint(checkpoint, device=device)
+    trained_ratio = config_value(config, "missing_ratio")
+    ratio = float(trained_ratio if missing_ratio is None else missing_ratio)
+    if not 0.0 < ratio < 1.0:
+        raise ConfigError(f"--missing-ratio must be in (0, 1), got {ratio}")
+    clouds = load_split(data_dir, split)
+    if len(clouds) == 0:
+        raise DataError(f"split {split!r} of {data_dir} has no samples")
+    points = np.asarray(clouds.points, dtype=np.float32)
+    partial, removed = test_protocol_crop(points, ratio)
+    detail = predict_missing(model, np.asarray(partial, dtype=np.float32), batch_size, device)
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for category in sorted(set(map(str, clouds.category))):
+        (out / category).mkdir(exist_ok=True)
+    for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
+        save_npy(out / str(cat) / f"{name}.npy", cloud)
+    info = {
+        "checkpoint": str(Path(checkpoint).resolve()),
+        "data": str(Path(data_dir).resolve()),
+        "split": split,
+        "protocol": {
+            "name": "test",
+            "missing_ratio": ratio,
+            "n_points": int(points.shape[1]),
+            "n_missing": int(removed.shape[1]),
+            "viewpoint": "VIEWPOINTS[i % 5] for sample i in split order",
+        },
+        "model": {
+            "name": config_value(config, "model"),
+            "n_points": config_value(config, "n_points"),
+            "missing_ratio": trained_ratio,
+            "n_predicted": int(detail.shape[1]),
+        },
+        "n_samples": len(clouds),
+        "device": device,
+    }
+    with atomic_path(out / "predictions.json") as tmp:
+        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
+    return info
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pfnet predict``."""
+    parser.add_argument("--checkpoint", type=Path, required=True, help="trained checkpoint (.pt)")
+    parser.add_argument("--data", type=Path, required=True, help="prepared data set folder")
+    parser.add_argument("--split", default="test", help="split to predict (default: test)")
+    parser.add_argument(
+        "--missing-ratio",
+        type=float,
+        default=None,
+        help="fraction of points the test crop removes (default: the checkpoint's)",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="prediction folder to write")
+    parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
+    parser.add_argument("--device", choices=DEVICES, default="auto", help="(default: auto)")
+    parser.add_argument(
+        "--gallery", type=Path, default=None, help="also render some predictions into a PNG"
+    )
+    parser.add_argument(
+        "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``pfnet predict``."""
+    if args.gallery is not None and args.gallery_count < 1:
+        raise ConfigError(f"--gallery-count must be at least 1, got {args.gallery_count}")
+    info = predict_split(
+        args.checkpoint,
+        args.data,
+        args.out,
+        split=args.split,
+        missing_ratio=args.missing_ratio,
+        batch_size=args.batch_size,
+        device=args.device,
+    )
+    ratio = info["protocol"]["missing_ratio"]
+    print(
+        f"wrote {info['n_samples']} predictions of {info['model']['n_predicted']} points to "
+        f"{args.out}/<category>/<name>.npy ({info['split']} split, {ratio:.0%} missing)"
+    )
+    if args.gallery is not None:
+        path = render_prediction_gallery(
+            args.gallery,
+            args.out,
+            args.data,
+            split=args.split,
+            missing_ratio=ratio,
+            count=args.gallery_count,
+        )
+        print(f"wrote {path}")
+    print(f"score it: pfnet evaluate {args.out} --data {args.data} --missing-ratio {ratio:g}")
+    return 0
+
+
+def render_prediction_gallery(
+    out: Path, pred_dir: Path, data_dir: Path, *, split: str, missing_ratio: float, count: int
+) -> Path:
+    """Render ``count`` predicted samples (spread over the categories) as partial/pred/gt rows."""
+    from pfnet.data import load_split, test_protocol_crop
+    from pfnet.evaluate import pick_gallery
+    from pfnet.io import read_point_cloud
+    from pfnet.render import RenderSample, render_gallery
+
+    clouds = load_split(data_dir, split)
+    categories = [str(c) for c in clouds.category]
+    rows = pick_gallery(categories, count)
+    points = np.asarray(clouds.points)
+    # Crop the whole split: sample i's viewpoint depends on its index in the split.
+    partial, _ = test_protocol_crop(points, missing_ratio)
+    samples = []
+    for i in rows:
+        key = f"{categories[i]}/{clouds.name[i]}"
+        pred = read_point_cloud(Path(pred_dir) / f"{key}.npy")
+        samples.append(RenderSample(key, partial[i], pred, points[i]))
+    title = f"{Path(pred_dir).name}: {split}, {missing_ratio:.0%} missing"
+    return render_gallery(out, samples, title=title)

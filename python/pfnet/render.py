@@ -1,0 +1,230 @@
+"""``pfnet render``: draw point clouds the way the paper's figures do.
+
+The paper's completion figures show, per shape, the partial input in grey, the input merged
+with the predicted missing region in yellow, and the ground truth in blue. A gallery here has
+one row per sample and, for each of several viewing angles, up to three panels: *input*
+(partial, grey), *completion* (partial grey + prediction yellow) and *ground truth* (blue).
+Panels whose clouds are not given are left out.
+
+:func:`render_gallery` is the library entry point, also used by ``pfnet predict``,
+``pfnet evaluate`` and ``pfnet demo``. The data sets are y-up (ShapeNet, SweetHome3D), so the
+y axis is drawn vertical.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import ConfigError, DataError
+
+HELP = "Draw point clouds (partial grey, prediction yellow, ground truth blue) into a PNG."
+
+PARTIAL_COLOR = "#9a9a9a"
+"""Grey: the incomplete input (paper, Figs. 7-9)."""
+PREDICTION_COLOR = "#f2c200"
+"""Yellow: the predicted missing region."""
+GROUND_TRUTH_COLOR = "#2f6fd0"
+"""Blue: the complete ground-truth cloud."""
+
+ROLES = ("partial", "prediction", "ground-truth")
+
+
+@dataclass
+class RenderSample:
+    """One gallery row: any of the three clouds may be absent.
+
+    Attributes:
+        label: Text drawn at the left of the row (e.g. ``"chair/chair_0003"``).
+        partial: ``(P, 3)`` incomplete input, or None.
+        prediction: ``(M, 3)`` predicted missing region (or a full completion), or None.
+        ground_truth: ``(N, 3)`` complete cloud, or None.
+    """
+
+    label: str
+    partial: np.ndarray | None = None
+    prediction: np.ndarray | None = None
+    ground_truth: np.ndarray | None = None
+
+
+def _panels(sample: RenderSample) -> list[tuple[str, list[tuple[np.ndarray, str]]]]:
+    """The (title, [(points, colour), ...]) panels of one row, for one view."""
+    panels = []
+    if sample.partial is not None:
+        panels.append(("input", [(sample.partial, PARTIAL_COLOR)]))
+    if sample.prediction is not None:
+        layers = [(sample.prediction, PREDICTION_COLOR)]
+        if sample.partial is not None:
+            layers.insert(0, (sample.partial, PARTIAL_COLOR))
+        panels.append(("completion" if sample.partial is not None else "prediction", layers))
+    if sample.ground_truth is not None:
+        panels.append(("ground truth", [(sample.ground_truth, GROUND_TRUTH_COLOR)]))
+    return panels
+
+
+def render_gallery(
+    out: str | os.PathLike[str],
+    samples: list[RenderSample],
+    *,
+    views: int = 2,
+    title: str | None = None,
+    point_size: float = 2.0,
+    panel_inches: float = 2.2,
+    dpi: int = 100,
+) -> Path:
+    """Draw ``samples`` into a PNG file, one row per sample, atomically.
+
+    Args:
+        out: Destination ``.png`` path; its folder is created if needed.
+        samples: The rows; every sample needs at least one cloud.
+        views: Number of viewing angles per sample (azimuths spread over 360 degrees).
+        title: Optional figure title.
+        point_size: Marker area in points squared.
+        panel_inches: Size of one panel.
+        dpi: Resolution of the PNG.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ConfigError: If there are no samples, a sample has no cloud, or ``views < 1``.
+        DataError: If a cloud is not a finite ``(N, 3)`` array.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from pfnet.io import atomic_path
+
+    if not samples:
+        raise ConfigError("render: nothing to draw (no samples)")
+    if views < 1:
+        raise ConfigError(f"render: --views must be at least 1, got {views}")
+    rows = []
+    for sample in samples:
+        panels = _panels(sample)
+        if not panels:
+            raise ConfigError(f"render: sample {sample.label!r} has no point cloud")
+        for _, layers in panels:
+            for points, _color in layers:
+                pts = np.asarray(points)
+                if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
+                    raise DataError(
+                        f"render: sample {sample.label!r} has a cloud of shape {pts.shape} "
+                        "that is not a finite (N, 3) array"
+                    )
+        rows.append(panels)
+    n_cols = max(len(p) for p in rows) * views
+    fig = Figure(figsize=(panel_inches * n_cols + 0.6, panel_inches * len(rows) + 0.4), dpi=dpi)
+    azimuths = [-60.0 + 360.0 * v / views for v in range(views)]
+    for r, (sample, panels) in enumerate(zip(samples, rows, strict=True)):
+        everything = np.concatenate([np.asarray(p) for _, ls in panels for p, _ in ls])
+        lo, hi = everything.min(axis=0), everything.max(axis=0)
+        centre, half = (lo + hi) / 2.0, max(float((hi - lo).max()) / 2.0, 1e-9)
+        for v, azimuth in enumerate(azimuths):
+            for k, (name, layers) in enumerate(panels):
+                col = v * len(panels) + k
+                ax = fig.add_subplot(len(rows), n_cols, r * n_cols + col + 1, projection="3d")
+                for points, color in layers:
+                    pts = np.asarray(points, dtype=np.float64) - centre
+                    # y-up data: draw (x, z, y) so that y is matplotlib's vertical axis.
+                    ax.scatter(
+                        pts[:, 0],
+                        pts[:, 2],
+                        pts[:, 1],
+                        s=point_size,
+                        c=color,
+                        depthshade=True,
+                        linewidths=0,
+                    )
+                ax.set_xlim(-half, half)
+                ax.set_ylim(-half, half)
+                ax.set_zlim(-half, half)
+                ax.set_box_aspect((1, 1, 1))
+                ax.view_init(elev=20.0, azim=azimuth)
+                ax.set_axis_off()
+                if col == 0:
+                    ax.text2D(
+                        0.0,
+                        0.5,
+                        sample.label,
+                        transform=ax.transAxes,
+                        rotation=90,
+                        va="center",
+                        ha="right",
+                        fontsize=8,
+                    )
+                if r == 0:
+                    suffix = f" ({azimuth:.0f}°)" if views > 1 else ""
+                    ax.set_title(name + suffix, fontsize=9)
+    # Inches kept free above the panels: the column titles, and the figure title above them.
+    margin = 0.4 + (0.35 if title else 0.0)
+    if title:
+        fig.suptitle(title, fontsize=10, y=1.0 - 0.1 / fig.get_figheight(), va="top")
+    fig.subplots_adjust(left=0.02, right=1.0, bottom=0.0, top=1.0 - margin / fig.get_figheight())
+    out_path = Path(out)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi)
+    return out_path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pfnet render``."""
+    parser.add_argument(
+        "files",
+        nargs="*",
+        metavar="FILE",
+        help="point cloud files (.npy .ply .xyz .pts .txt .pcd), one row each, coloured by --role",
+    )
+    parser.add_argument(
+        "--sample",
+        nargs=3,
+        action="append",
+        default=[],
+        metavar=("PARTIAL", "PRED", "GT"),
+        help="one row from a partial input, a prediction and a ground truth file "
+        "('-' leaves one out); repeat for more rows",
+    )
+    parser.add_argument("--out", required=True, type=Path, help="PNG file to write")
+    parser.add_argument(
+        "--role",
+        choices=ROLES,
+        default="ground-truth",
+        help="colour of the FILE rows: partial grey, prediction yellow, ground-truth blue "
+        "(default: %(default)s)",
+    )
+    parser.add_argument("--views", type=int, default=2, help="view angles (default: 2)")
+    parser.add_argument("--title", default=None, help="figure title")
+    parser.add_argument("--point-size", type=float, default=2.0, help="marker size (default: 2)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``pfnet render``."""
+    from pfnet.io import read_point_cloud
+
+    if not args.files and not args.sample:
+        raise ConfigError("render: give at least one FILE or --sample PARTIAL PRED GT")
+    if args.out.suffix.lower() != ".png":
+        raise ConfigError(f"render: --out must be a .png file, got {args.out}")
+    samples = []
+    field = {"partial": "partial", "prediction": "prediction", "ground-truth": "ground_truth"}
+    for name in args.files:
+        samples.append(RenderSample(label=Path(name).name))
+        setattr(samples[-1], field[args.role], read_point_cloud(name))
+    for triple in args.sample:
+        if all(t == "-" for t in triple):
+            raise ConfigError("render: --sample needs at least one file that is not '-'")
+        clouds = [None if t == "-" else read_point_cloud(t) for t in triple]
+        label = Path(next(t for t in triple if t != "-")).stem
+        samples.append(RenderSample(label, *clouds))
+    path = render_gallery(
+        args.out, samples, views=args.views, title=args.title, point_size=args.point_size
+    )
+    print(f"wrote {path} ({len(samples)} row(s))")
+    return 0

@@ -1,0 +1,49 @@
+"""Tests for ``pfnet demo``: the whole pipeline with a tiny budget on procedural shapes."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+pytest.importorskip("torch")
+
+from pfnet import demo  # noqa: E402
+from pfnet.cli import main  # noqa: E402
+
+
+@pytest.mark.slow
+def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(demo, "SWEETHOME3D_FURNITURE", tmp_path / "no-furniture")
+    out = tmp_path / "demo"
+    args = ["demo", "--out", str(out), "--count", "3", "--points", "512", "--minutes", "0.01"]
+    assert main([*args, "--gallery-count", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "sudo apt-get install sweethome3d-furniture" in text
+    assert "Using procedural shapes" in text
+    assert "one epoch took" in text and "training 1 epoch(s)" in text
+    for step in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
+        assert step in text
+    assert (out / "data" / "manifest.json").is_file()
+    assert (out / "gallery.png").read_bytes()[:4] == b"\x89PNG"
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["region"] == "missing" and report["missing"] == []
+    assert report["mean"]["pred_to_gt"] > 0
+    predictions = json.loads((out / "predictions" / "predictions.json").read_text())
+    assert predictions["n_samples"] == sum(c["n"] for c in report["categories"].values())
+    assert f"checkpoint    {out / 'run'}" in text
+
+    # A second run reuses the data set and trains into a fresh run folder.
+    assert main([*args[:-2], "--epochs", "1", "--procedural"]) == 0
+    text = capsys.readouterr().out
+    assert "reusing the data set" in text and str(out / "run-2") in text
+
+
+def test_demo_argument_errors(tmp_path, capsys):
+    out = str(tmp_path / "d")
+    assert main(["demo", "--out", out, "--minutes", "0"]) == 1
+    assert "--minutes must be positive" in capsys.readouterr().err
+    assert main(["demo", "--out", out, "--epochs", "0"]) == 1
+    assert "--epochs must be at least 1" in capsys.readouterr().err
+    assert main(["demo", "--out", out, "--source", str(tmp_path / "none")]) == 1
+    assert "does not exist" in capsys.readouterr().err

@@ -1,0 +1,109 @@
+"""Tests for ``pfnet predict``: files, determinism, agreement with the model, errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from pfnet.checkpoint import save_checkpoint  # noqa: E402
+from pfnet.cli import main  # noqa: E402
+from pfnet.data import load_split, test_protocol_crop  # noqa: E402
+from pfnet.errors import ConfigError  # noqa: E402
+from pfnet.models import build_model  # noqa: E402
+from pfnet.predict import predict_split, resolve_device  # noqa: E402
+from pfnet.training.config import preset_config  # noqa: E402
+
+
+def make_checkpoint(path, n_points: int, model: str = "pfnet", seed: int = 0):
+    """An untrained but deterministic small model saved as a pfnet checkpoint."""
+    config = preset_config("small").replace(n_points=n_points, model=model)
+    torch.manual_seed(seed)
+    generator = build_model(config).eval()
+    save_checkpoint(path, {"config": config.to_dict(), "model": generator.state_dict()})
+    return generator, config
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tiny_dataset, tmp_path_factory):
+    n_points = load_split(tiny_dataset, "test").points.shape[1]
+    path = tmp_path_factory.mktemp("ckpt") / "model.pt"
+    generator, config = make_checkpoint(path, n_points)
+    return path, generator, config
+
+
+def test_predict_writes_one_file_per_sample(tmp_path, tiny_dataset, checkpoint, capsys):
+    path, generator, config = checkpoint
+    out = tmp_path / "pred"
+    code = main(
+        ["predict", "--checkpoint", str(path), "--data", str(tiny_dataset), "--out", str(out)]
+        + ["--batch-size", "3", "--device", "cpu"]
+    )
+    assert code == 0
+    assert "pfnet evaluate" in capsys.readouterr().out
+    clouds = load_split(tiny_dataset, "test")
+    partial, _ = test_protocol_crop(np.asarray(clouds.points), config.missing_ratio)
+    with torch.inference_mode():
+        expected = generator(torch.from_numpy(np.asarray(partial, np.float32))).detail.numpy()
+    for i, (cat, name) in enumerate(zip(clouds.category, clouds.name, strict=True)):
+        pred = np.load(out / str(cat) / f"{name}.npy")
+        assert pred.dtype == np.float32 and pred.shape == (config.n_missing, 3)
+        np.testing.assert_allclose(pred, expected[i], rtol=1e-5, atol=1e-5)
+    info = json.loads((out / "predictions.json").read_text())
+    assert info["checkpoint"] == str(path.resolve())
+    assert info["data"] == str(tiny_dataset.resolve())
+    assert info["split"] == "test" and info["n_samples"] == len(clouds)
+    assert info["protocol"]["missing_ratio"] == config.missing_ratio
+    assert info["protocol"]["n_missing"] == config.n_missing
+    assert info["model"]["name"] == "pfnet" and info["model"]["n_predicted"] == config.n_missing
+    files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert len(files) == len(clouds) + 1  # nothing but the predictions and predictions.json
+
+    # The files score through pfnet evaluate without a missing or unreadable one.
+    assert main(["evaluate", str(out), "--data", str(tiny_dataset)]) == 0
+
+
+def test_predict_is_deterministic_and_batch_independent(tmp_path, tiny_dataset, checkpoint):
+    path = checkpoint[0]
+    a = predict_split(path, tiny_dataset, tmp_path / "a", batch_size=1, device="cpu")
+    b = predict_split(path, tiny_dataset, tmp_path / "b", batch_size=64, device="cpu")
+    assert a["n_samples"] == b["n_samples"]
+    for file in (tmp_path / "a").rglob("*.npy"):
+        other = tmp_path / "b" / file.relative_to(tmp_path / "a")
+        np.testing.assert_allclose(np.load(file), np.load(other), rtol=1e-5, atol=1e-6)
+
+
+def test_predict_other_missing_ratio_and_gallery(tmp_path, tiny_dataset, checkpoint):
+    path, _, config = checkpoint
+    out, png = tmp_path / "pred", tmp_path / "g.png"
+    args = ["predict", "--checkpoint", str(path), "--data", str(tiny_dataset), "--out", str(out)]
+    assert main([*args, "--missing-ratio", "0.5", "--gallery", str(png)]) == 0
+    info = json.loads((out / "predictions.json").read_text())
+    assert info["protocol"]["missing_ratio"] == 0.5
+    assert info["model"]["missing_ratio"] == config.missing_ratio
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_predict_errors(tmp_path, tiny_dataset, checkpoint, capsys, monkeypatch):
+    path = checkpoint[0]
+    base = ["predict", "--data", str(tiny_dataset), "--out", str(tmp_path / "o")]
+    assert main([*base, "--checkpoint", str(tmp_path / "none.pt")]) == 1
+    assert "none.pt does not exist" in capsys.readouterr().err
+    (tmp_path / "junk.pt").write_bytes(b"junk")
+    assert main([*base, "--checkpoint", str(tmp_path / "junk.pt")]) == 1
+    assert "junk.pt cannot be read" in capsys.readouterr().err
+    assert main([*base, "--checkpoint", str(path), "--batch-size", "0"]) == 1
+    assert "--batch-size must be at least 1" in capsys.readouterr().err
+    assert main([*base, "--checkpoint", str(path), "--missing-ratio", "1.5"]) == 1
+    assert r"--missing-ratio must be in (0, 1)" in capsys.readouterr().err
+    assert main([*base, "--checkpoint", str(path), "--split", "nope"]) == 1
+    assert "nope" in capsys.readouterr().err
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ConfigError, match="no CUDA device"):
+        resolve_device("cuda")
+    assert resolve_device("auto") == "cpu"
+    with pytest.raises(ConfigError, match="--device must be one of"):
+        resolve_device("tpu")

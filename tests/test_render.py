@@ -1,0 +1,133 @@
+"""Tests for pfnet.render: galleries and the ``pfnet render`` command."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pfnet.cli import main
+from pfnet.errors import ConfigError, DataError
+from pfnet.io import save_npy, write_ply
+from pfnet.render import (
+    GROUND_TRUTH_COLOR,
+    PARTIAL_COLOR,
+    PREDICTION_COLOR,
+    RenderSample,
+    render_gallery,
+)
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_size(path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == PNG_MAGIC
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def _pixels(path) -> np.ndarray:
+    import matplotlib.image
+
+    return matplotlib.image.imread(path)[..., :3]
+
+
+def _has_colour(image: np.ndarray, hex_colour: str, tol: float = 0.12) -> bool:
+    rgb = np.array([int(hex_colour[i : i + 2], 16) / 255 for i in (1, 3, 5)])
+    return bool((np.abs(image - rgb).max(axis=-1) < tol).any())
+
+
+@pytest.fixture
+def sphere() -> np.ndarray:
+    rng = np.random.default_rng(1)
+    points = rng.normal(size=(400, 3))
+    return (points / np.linalg.norm(points, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_gallery_rows_panels_and_colours(tmp_path, sphere):
+    partial, missing = sphere[sphere[:, 0] < 0.5], sphere[sphere[:, 0] >= 0.5]
+    samples = [
+        RenderSample("a/full", partial, missing, sphere),
+        RenderSample("b/only-gt", ground_truth=sphere),
+    ]
+    out = render_gallery(
+        tmp_path / "sub" / "g.png", samples, views=2, dpi=50, panel_inches=2, point_size=40
+    )
+    assert out == tmp_path / "sub" / "g.png"
+    width, height = _png_size(out)
+    # 3 panels x 2 views per row, 2 rows.
+    assert width > 2.5 * height
+    image = _pixels(out)
+    for colour in (PARTIAL_COLOR, PREDICTION_COLOR, GROUND_TRUTH_COLOR):
+        assert _has_colour(image, colour), colour
+    assert [p.name for p in out.parent.iterdir()] == ["g.png"]
+
+
+def test_gallery_prediction_only_is_yellow_not_blue(tmp_path, sphere):
+    out = render_gallery(
+        tmp_path / "p.png", [RenderSample("x", prediction=sphere)], views=1, point_size=40
+    )
+    image = _pixels(out)
+    assert _has_colour(image, PREDICTION_COLOR)
+    assert not _has_colour(image, GROUND_TRUTH_COLOR)
+
+
+def test_gallery_errors(tmp_path, sphere):
+    with pytest.raises(ConfigError, match="no samples"):
+        render_gallery(tmp_path / "g.png", [])
+    with pytest.raises(ConfigError, match="'empty' has no point cloud"):
+        render_gallery(tmp_path / "g.png", [RenderSample("empty")])
+    with pytest.raises(ConfigError, match="--views must be at least 1"):
+        render_gallery(tmp_path / "g.png", [RenderSample("s", sphere)], views=0)
+    bad = sphere.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(DataError, match=r"'s' has a cloud of shape \(400, 3\) that is not"):
+        render_gallery(tmp_path / "g.png", [RenderSample("s", prediction=bad)])
+    with pytest.raises(DataError, match=r"shape \(400, 2\)"):
+        render_gallery(tmp_path / "g.png", [RenderSample("s", sphere[:, :2])])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_render_command_files_and_samples(tmp_path, sphere, capsys):
+    write_ply(tmp_path / "gt.ply", sphere)
+    save_npy(tmp_path / "partial.npy", sphere[sphere[:, 1] < 0])
+    np.savetxt(tmp_path / "pred.xyz", sphere[sphere[:, 1] >= 0])
+    out = tmp_path / "r.png"
+    code = main(
+        [
+            "render",
+            str(tmp_path / "gt.ply"),
+            "--sample",
+            str(tmp_path / "partial.npy"),
+            str(tmp_path / "pred.xyz"),
+            str(tmp_path / "gt.ply"),
+            "--sample",
+            str(tmp_path / "partial.npy"),
+            "-",
+            "-",
+            "--out",
+            str(out),
+            "--views",
+            "1",
+            "--title",
+            "spheres",
+        ]
+    )
+    assert code == 0
+    assert f"wrote {out} (3 row(s))" in capsys.readouterr().out
+    width, height = _png_size(out)
+    assert height > width / 3
+
+
+def test_render_command_errors(tmp_path, sphere, capsys):
+    assert main(["render", "--out", str(tmp_path / "x.png")]) == 1
+    assert "give at least one FILE" in capsys.readouterr().err
+    write_ply(tmp_path / "a.ply", sphere)
+    assert main(["render", str(tmp_path / "a.ply"), "--out", str(tmp_path / "x.jpg")]) == 1
+    assert "--out must be a .png file" in capsys.readouterr().err
+    assert main(["render", "--sample", "-", "-", "-", "--out", str(tmp_path / "x.png")]) == 1
+    assert "at least one file that is not '-'" in capsys.readouterr().err
+    (tmp_path / "bad.xyz").write_text("1 2\n")
+    assert main(["render", str(tmp_path / "bad.xyz"), "--out", str(tmp_path / "x.png")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("pfnet render: error: ") and "bad.xyz: line 1 has 2 column" in err
+    assert not (tmp_path / "x.png").exists()
