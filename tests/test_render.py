@@ -131,3 +131,25 @@ def test_render_command_errors(tmp_path, sphere, capsys):
     err = capsys.readouterr().err
     assert err.startswith("pfnet render: error: ") and "bad.xyz: line 1 has 2 column" in err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_render_panels_draws_any_columns(tmp_path, sphere):
+    from pfnet.render import render_panels
+
+    rows = [
+        ("chair/a_long_name_0001", [("input", [(sphere, PARTIAL_COLOR)])]
+         + [(f"model {k}", [(sphere, PARTIAL_COLOR), (sphere + 2.0, PREDICTION_COLOR)])
+            for k in range(4)]
+         + [("ground truth", [(sphere, GROUND_TRUTH_COLOR)])]),
+        ("lamp/b", [("input", [(sphere, PARTIAL_COLOR)])]),
+    ]  # fmt: skip
+    out = render_panels(tmp_path / "grid.png", rows, title="six columns", dpi=40, point_size=9)
+    width, height = _png_size(out)
+    assert (width, height) == (round((2.2 * 6 + 0.6) * 40), round((2.2 * 2 + 0.4) * 40))
+    image = _pixels(out)
+    for colour in (PARTIAL_COLOR, PREDICTION_COLOR, GROUND_TRUTH_COLOR):
+        assert _has_colour(image, colour)
+    with pytest.raises(ConfigError, match="sample 'x' has no point cloud"):
+        render_panels(tmp_path / "e.png", [("x", [])])
+    with pytest.raises(DataError, match="sample 'y' has a cloud of shape"):
+        render_panels(tmp_path / "e.png", [("y", [("input", [(sphere[:, :2], PARTIAL_COLOR)])])])

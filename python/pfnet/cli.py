@@ -28,6 +28,7 @@ COMMANDS: dict[str, str] = {
     "evaluate": "pfnet.evaluate",
     "render": "pfnet.render",
     "demo": "pfnet.demo",
+    "reproduce": "pfnet.reproduce",
 }
 
 

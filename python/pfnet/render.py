@@ -78,10 +78,51 @@ def render_gallery(
 ) -> Path:
     """Draw ``samples`` into a PNG file, one row per sample, atomically.
 
+    Each sample becomes the panels input / completion / ground truth (those it has); the
+    other arguments, the return value and the errors are those of :func:`render_panels`.
+    """
+    if not samples:
+        raise ConfigError("render: nothing to draw (no samples)")
+    rows = []
+    for sample in samples:
+        panels = _panels(sample)
+        if not panels:
+            raise ConfigError(f"render: sample {sample.label!r} has no point cloud")
+        rows.append((sample.label, panels))
+    return render_panels(
+        out,
+        rows,
+        views=views,
+        title=title,
+        point_size=point_size,
+        panel_inches=panel_inches,
+        dpi=dpi,
+    )
+
+
+Layer = tuple[np.ndarray, str]
+"""A cloud and its colour."""
+Panel = tuple[str, list[Layer]]
+"""A column title and the layers drawn in that panel, back to front."""
+
+
+def render_panels(
+    out: str | os.PathLike[str],
+    rows: list[tuple[str, list[Panel]]],
+    *,
+    views: int = 1,
+    title: str | None = None,
+    point_size: float = 2.0,
+    panel_inches: float = 2.2,
+    dpi: int = 100,
+) -> Path:
+    """Draw rows of labelled panels into a PNG file atomically (the layout of every gallery).
+
     Args:
         out: Destination ``.png`` path; its folder is created if needed.
-        samples: The rows; every sample needs at least one cloud.
-        views: Number of viewing angles per sample (azimuths spread over 360 degrees).
+        rows: ``(label, panels)`` per row; the first row's panel titles head the columns.
+            All panels of a row share one scale, so sizes compare across the row.
+        views: Number of viewing angles per row (azimuths spread over 360 degrees).
         title: Optional figure title.
         point_size: Marker area in points squared.
         panel_inches: Size of one panel.
@@ -91,7 +132,7 @@ def render_gallery(
         The path written.
 
     Raises:
-        ConfigError: If there are no samples, a sample has no cloud, or ``views < 1``.
+        ConfigError: If there are no rows, a row has no panel, or ``views < 1``.
         DataError: If a cloud is not a finite ``(N, 3)`` array.
     """
     import matplotlib
@@ -101,28 +142,25 @@ def render_gallery(
 
     from pfnet.io import atomic_path
 
-    if not samples:
+    if not rows:
         raise ConfigError("render: nothing to draw (no samples)")
     if views < 1:
         raise ConfigError(f"render: --views must be at least 1, got {views}")
-    rows = []
-    for sample in samples:
-        panels = _panels(sample)
+    for label, panels in rows:
         if not panels:
-            raise ConfigError(f"render: sample {sample.label!r} has no point cloud")
+            raise ConfigError(f"render: sample {label!r} has no point cloud")
         for _, layers in panels:
             for points, _color in layers:
                 pts = np.asarray(points)
                 if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
                     raise DataError(
-                        f"render: sample {sample.label!r} has a cloud of shape {pts.shape} "
+                        f"render: sample {label!r} has a cloud of shape {pts.shape} "
                         "that is not a finite (N, 3) array"
                     )
-        rows.append(panels)
-    n_cols = max(len(p) for p in rows) * views
+    n_cols = max(len(panels) for _, panels in rows) * views
     fig = Figure(figsize=(panel_inches * n_cols + 0.6, panel_inches * len(rows) + 0.4), dpi=dpi)
     azimuths = [-60.0 + 360.0 * v / views for v in range(views)]
-    for r, (sample, panels) in enumerate(zip(samples, rows, strict=True)):
+    for r, (label, panels) in enumerate(rows):
         everything = np.concatenate([np.asarray(p) for _, ls in panels for p, _ in ls])
         lo, hi = everything.min(axis=0), everything.max(axis=0)
         centre, half = (lo + hi) / 2.0, max(float((hi - lo).max()) / 2.0, 1e-9)
@@ -152,12 +190,14 @@ def render_gallery(
                     ax.text2D(
                         0.0,
                         0.5,
-                        sample.label,
+                        # "category/name" on two lines, so long names stay beside their row.
+                        label.replace("/", "/\n", 1),
                         transform=ax.transAxes,
                         rotation=90,
                         va="center",
                         ha="right",
                         fontsize=8,
+                        multialignment="center",
                     )
                 if r == 0:
                     suffix = f" ({azimuth:.0f}°)" if views > 1 else ""
@@ -166,7 +206,13 @@ def render_gallery(
     margin = 0.4 + (0.35 if title else 0.0)
     if title:
         fig.suptitle(title, fontsize=10, y=1.0 - 0.1 / fig.get_figheight(), va="top")
-    fig.subplots_adjust(left=0.02, right=1.0, bottom=0.0, top=1.0 - margin / fig.get_figheight())
+    # Half an inch on the left for the row labels.
+    fig.subplots_adjust(
+        left=0.5 / fig.get_figwidth(),
+        right=1.0,
+        bottom=0.0,
+        top=1.0 - margin / fig.get_figheight(),
+    )
     out_path = Path(out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:

@@ -1,0 +1,161 @@
+"""Tests for ``pfnet reproduce``: the study, its report, and the README's published results."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pfnet import reproduce
+from pfnet.cli import main
+from pfnet.errors import ConfigError
+from pfnet.reproduce import (
+    README_BEGIN,
+    README_END,
+    StudyRun,
+    plateau,
+    readme_section,
+    render_report,
+    study_runs,
+    update_readme,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+PUBLISHED = ROOT / "docs" / "results"
+
+
+def test_study_runs_are_the_ablation_then_the_ratios():
+    runs = study_runs(reproduce.STUDY_MODELS, reproduce.STUDY_RATIOS)
+    assert [r.name for r in runs] == [
+        "pfnet-25",
+        "pfnet-vanilla-25",
+        "mr-cmlp-25",
+        "cmlp-25",
+        "mlp-25",
+        "pfnet-50",
+        "pfnet-75",
+    ]
+    assert study_runs(["mlp"], [0.25, 0.5]) == [StudyRun("mlp", 0.25)]
+
+
+def test_plateau_measures_the_last_quarter():
+    falling = [100.0 / (k + 1) for k in range(40)]
+    result = plateau(falling)
+    assert result["window"] == 10 and not result["levelled"]
+    assert result["gain"] == pytest.approx((100 / 30 - 100 / 40) / (100 / 30))
+    flat = [10.0] * 19 + [9.95] + [9.96] * 20
+    assert plateau(flat) == {"window": 10, "gain": pytest.approx(-0.01 / 9.95), "levelled": True}
+    worse = [5.0] * 30 + [6.0] * 10
+    assert plateau(worse)["gain"] == pytest.approx(-0.2) and plateau(worse)["levelled"]
+    assert plateau([3.0, 2.0, 1.0]) == {"window": 0, "gain": None, "levelled": False}
+
+
+def test_update_readme_replaces_only_the_section(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# title\n\nbefore\n{README_BEGIN}\nold\n{README_END}\nafter\n")
+    update_readme(readme, "new table\n")
+    assert (
+        readme.read_text() == f"# title\n\nbefore\n{README_BEGIN}\nnew table\n{README_END}\nafter\n"
+    )
+    assert readme_section(readme) == "new table"
+    readme.write_text("# no markers\n")
+    with pytest.raises(ConfigError, match="no results section; add the lines"):
+        update_readme(readme, "x")
+    with pytest.raises(ConfigError, match="cannot read it"):
+        update_readme(tmp_path / "absent.md", "x")
+
+
+def test_reproduce_argument_errors(tmp_path, capsys):
+    out = str(tmp_path / "r")
+    assert main(["reproduce", "--out", out, "--models", "pfnet", "pointnet"]) == 1
+    assert "--models: unknown model(s) pointnet; choose from pfnet" in capsys.readouterr().err
+    assert main(["reproduce", "--out", out, "--ratios", "0.25", "1.5"]) == 1
+    assert "--ratios must be in (0, 1); got 1.5" in capsys.readouterr().err
+    assert main(["reproduce", "--out", out, "--readme", str(tmp_path / "none.md")]) == 1
+    assert "--readme" in capsys.readouterr().err
+    assert main(["reproduce", "--out", out, "--report-only"]) == 1
+    assert f"--report-only: cannot read {out}/results.json" in capsys.readouterr().err
+    assert main(["reproduce", "--out", out, "--data", str(tmp_path), "--device", "cpu"]) == 1
+    assert "is not a prepared data set (no manifest.json)" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_reproduce_end_to_end_resumes_publishes_and_fills_the_readme(
+    tmp_path, tiny_dataset, capsys
+):
+    pytest.importorskip("torch")
+    out, pub = tmp_path / "study", tmp_path / "docs" / "results"
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# x\n{README_BEGIN}\n{README_END}\n")
+    argv = ["reproduce", "--out", str(out), "--data", str(tiny_dataset), "--device", "cpu"]
+    argv += ["--models", "pfnet", "mlp", "--ratios", "0.25", "0.5", "--width", "0.125"]
+    argv += ["--batch-size", "8", "--gallery-count", "2"]
+    assert main([*argv, "--epochs", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "pfnet-25: training 2 epochs on cpu" in text
+
+    results = json.loads((out / "results.json").read_text())
+    assert [r["name"] for r in results["runs"]] == ["pfnet-25", "mlp-25", "pfnet-50"]
+    assert results["preset"] == "small" and results["config"]["width"] == 0.125
+    assert results["dataset"]["splits"] == {"train": 24, "val": 8, "test": 12}
+    for run in results["runs"]:
+        assert run["epochs"] == 2 and len(run["curve"]["val_cd_l2"]) == 2
+        assert run["n_missing"] == round(512 * run["missing_ratio"])
+        for region in ("missing", "whole"):
+            report = json.loads((out / "runs" / run["name"] / f"eval-{region}.json").read_text())
+            assert report["region"] == region and report["missing"] == []
+            assert run[region]["mean"] == report["mean"]
+            assert sum(c["n"] for c in run[region]["categories"].values()) == 12
+    for name in ("curves.png", "gallery.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG"
+    report = (out / "results.md").read_text()
+    assert report == render_report(results)
+    assert "| **mean** |" in report and "PF-Net at 25 / 50 / 75 % missing" in report
+
+    # Longer schedule: finished runs resume; a third call finds everything trained.
+    assert main([*argv, "--epochs", "3"]) == 0
+    assert "pfnet-25: resuming at epoch 3 of 3" in capsys.readouterr().out
+    assert main([*argv, "--epochs", "3", "--publish", str(pub), "--readme", str(readme)]) == 0
+    text = capsys.readouterr().out
+    assert "mlp-25: already trained (3 epochs)" in text
+    assert f"updated the results section of {readme}" in text
+    results = json.loads((pub / "results.json").read_text())
+    assert [r["epochs"] for r in results["runs"]] == [3, 3, 3]
+    assert readme_section(readme) == render_report(results, "docs/results/").strip("\n")
+    published = sorted(str(p.relative_to(pub)) for p in pub.rglob("*") if p.is_file())
+    assert not [p for p in published if p.endswith(".pt") or "predictions" in p]
+    assert "runs/mlp-25/log.jsonl" in published and "gallery.png" in published
+
+    # Another configuration in the same folder is refused, not mixed in.
+    assert main([*argv, "--epochs", "3", "--width", "0.25"]) == 1
+    assert "holds a run with another configuration" in capsys.readouterr().err
+
+    # The report alone is rebuilt from results.json.
+    (out / "results.md").unlink()
+    assert main(["reproduce", "--out", str(out), "--data", str(tiny_dataset), "--report-only"]) == 0
+    assert (out / "results.md").read_text() == render_report(
+        json.loads((out / "results.json").read_text())
+    )
+
+
+@pytest.mark.skipif(not (PUBLISHED / "results.json").is_file(), reason="no published results")
+def test_readme_results_are_the_published_run():
+    """The README's numbers are generated from docs/results, whose files agree."""
+    results = json.loads((PUBLISHED / "results.json").read_text())
+    assert readme_section(ROOT / "README.md") == render_report(results, "docs/results/").strip("\n")
+    assert (PUBLISHED / "results.md").read_text() == render_report(results)
+    for run in results["runs"]:
+        folder = PUBLISHED / "runs" / run["name"]
+        for region in ("missing", "whole"):
+            report = json.loads((folder / f"eval-{region}.json").read_text())
+            assert report["mean"] == run[region]["mean"]
+            assert report["categories"] == run[region]["categories"]
+        log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+        assert [row["val_cd_l2"] for row in log[1:]] == run["curve"]["val_cd_l2"]
+        config = json.loads((folder / "config.json").read_text())
+        assert config["model"] == run["model"] and config["missing_ratio"] == run["missing_ratio"]
+        assert config["epochs"] == results["config"]["epochs"]
+        # Every model was trained until validation levelled off.
+        assert run["plateau"] == plateau(run["curve"]["val_cd_l2"])
+        assert run["plateau"]["levelled"], run["name"]
