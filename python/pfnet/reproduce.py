@@ -80,6 +80,8 @@ PAPER_TABLE4_CHAIR = {
     "mlp": (2.692, 2.384),
 }
 PAPER_TABLE2_MEAN = {"missing": (2.426, 2.117), "whole": (0.555, 0.458)}
+PAPER_TABLE2_CHAIR_MISSING = {"pfnet": (2.074, 1.824), "pfnet-vanilla": (1.998, 1.828)}
+PAPER_TABLE5_AIRPLANE = {0.25: (0.727, 0.542), 0.5: (0.727, 0.520), 0.75: (0.748, 0.623)}
 
 SOURCE_TITLES = {
     "sweethome3d": "SweetHome3D furniture (real models, Debian's sweethome3d-furniture)",
@@ -516,21 +518,27 @@ def render_report(results: dict[str, Any], assets: str = "") -> str:
             "",
             "For scale, the paper on ShapeNet-Part (13 categories, full-width network, 200 "
             f"epochs): PF-Net missing {paper['missing'][0]} / {paper['missing'][1]}, whole "
-            f"{paper['whole'][0]} / {paper['whole'][1]}; Table 4 (chair, missing): "
+            f"{paper['whole'][0]} / {paper['whole'][1]}; chair, missing region: Table 4 "
             + ", ".join(f"{MODEL_TITLES[m]} {a} / {b}" for m, (a, b) in PAPER_TABLE4_CHAIR.items())
+            + "; Table 2 "
+            + ", ".join(
+                f"{MODEL_TITLES[m]} {a} / {b}" for m, (a, b) in PAPER_TABLE2_CHAIR_MISSING.items()
+            )
             + ".",
             "",
         ]
     if len(ratios) > 1:
         lines += ["**PF-Net at 25 / 50 / 75 % missing** (Table 5; mean over categories)", ""]
         lines += [
-            "| missing | M | missing region | whole cloud |",
-            "|---:|---:|---:|---:|",
+            "| missing | M | missing region | whole cloud | paper: missing region (airplane) |",
+            "|---:|---:|---:|---:|---:|",
         ]
         for r in ratios:
+            paper_pair = PAPER_TABLE5_AIRPLANE.get(r["missing_ratio"])
+            paper_text = f"{paper_pair[0]} / {paper_pair[1]}" if paper_pair else "n/a"
             lines.append(
                 f"| {r['missing_ratio']:.0%} | {r['n_missing']} | {_pair(r['missing']['mean'])} "
-                f"| {_pair(r['whole']['mean'])} |"
+                f"| {_pair(r['whole']['mean'])} | {paper_text} |"
             )
         lines.append("")
     lines += [
