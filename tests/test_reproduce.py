@@ -25,18 +25,109 @@ ROOT = Path(__file__).resolve().parent.parent
 PUBLISHED = ROOT / "docs" / "results"
 
 
-def test_study_runs_are_the_ablation_then_the_ratios():
+def test_study_runs_are_the_ablation_then_the_ratios_seed_by_seed():
     runs = study_runs(reproduce.STUDY_MODELS, reproduce.STUDY_RATIOS)
     assert [r.name for r in runs] == [
-        "pfnet-25",
-        "pfnet-vanilla-25",
-        "mr-cmlp-25",
-        "cmlp-25",
-        "mlp-25",
-        "pfnet-50",
-        "pfnet-75",
+        "pfnet-25-seed0",
+        "pfnet-vanilla-25-seed0",
+        "mr-cmlp-25-seed0",
+        "cmlp-25-seed0",
+        "mlp-25-seed0",
+        "pfnet-50-seed0",
+        "pfnet-75-seed0",
     ]
-    assert study_runs(["mlp"], [0.25, 0.5]) == [StudyRun("mlp", 0.25)]
+    assert study_runs(["mlp"], [0.25, 0.5]) == [StudyRun("mlp", 0.25, 0)]
+    runs = study_runs(["pfnet", "mlp"], [0.25, 0.75], seeds=[3, 1])
+    assert [r.name for r in runs] == [
+        "pfnet-25-seed3",
+        "mlp-25-seed3",
+        "pfnet-75-seed3",
+        "pfnet-25-seed1",
+        "mlp-25-seed1",
+        "pfnet-75-seed1",
+    ]
+    assert runs[-1].setting == "pfnet-75" and runs[-1].seed == 1
+
+
+def _record(model, seed, missing, whole=(1.0, 1.0), curve=(3.0, 2.0, 1.0, 1.0), ratio=0.25):
+    """A run record as ``evaluate_run`` makes it; ``missing`` maps category -> (p2g, g2p)."""
+
+    def region(pairs):
+        cats = {
+            c: {"n": 2, "pred_to_gt": a, "gt_to_pred": b, "cd_l1": a + b, "f_score": 0.5}
+            for c, (a, b) in pairs.items()
+        }
+        mean = {k: sum(c[k] for c in cats.values()) / len(cats) for k in cats[next(iter(cats))]}
+        del mean["n"]
+        return {"categories": cats, "mean": mean}
+
+    run = StudyRun(model, ratio, seed)
+    best = min(range(len(curve)), key=curve.__getitem__)
+    return {
+        "name": run.name,
+        "setting": run.setting,
+        "model": model,
+        "missing_ratio": ratio,
+        "seed": seed,
+        "n_missing": 128,
+        "parameters": 1000,
+        "train_time_s": 10.0,
+        "epoch_time_s": 2.5 + seed,
+        "epochs": len(curve),
+        "best_epoch": best + 1,
+        "best_val_cd_l2": curve[best],
+        "plateau": plateau(curve),
+        "curve": {"epoch": list(range(1, len(curve) + 1)), "val_cd_l2": list(curve)},
+        "missing": region(missing),
+        "whole": region({c: whole for c in missing}),
+    }
+
+
+def test_summarize_settings_averages_seeds_and_keeps_the_worst_plateau():
+    runs = [
+        _record("pfnet", 0, {"chair": (1.0, 2.0), "lamp": (3.0, 4.0)}),
+        _record("mlp", 0, {"chair": (5.0, 5.0), "lamp": (5.0, 5.0)}),
+        # Still improving in its last quarter: 1.5 -> 1.0 is a 33 % gain.
+        _record("pfnet", 1, {"chair": (2.0, 2.0), "lamp": (5.0, 6.0)}, curve=(3, 2, 1.5, 1.0)),
+        _record("mlp", 1, {"chair": (4.0, 6.0), "lamp": (6.0, 4.0)}),
+    ]
+    pfnet, mlp = reproduce.summarize_settings(runs)
+    assert (pfnet["name"], mlp["name"]) == ("pfnet-25", "mlp-25")
+    assert pfnet["seeds"] == [0, 1] and pfnet["best_epochs"] == [3, 4]
+    chair = pfnet["missing"]["categories"]["chair"]
+    assert chair == {"n": 2, "pred_to_gt": 1.5, "gt_to_pred": 2.0, "cd_l1": 3.5, "f_score": 0.5}
+    # Seed means over categories: p2g 2.0 and 3.5, g2p 3.0 and 4.0.
+    assert pfnet["missing"]["mean"]["pred_to_gt"] == pytest.approx(2.75)
+    assert pfnet["missing"]["std"]["pred_to_gt"] == pytest.approx(1.5 / 2**0.5)
+    assert pfnet["missing"]["std"]["gt_to_pred"] == pytest.approx(1.0 / 2**0.5)
+    assert pfnet["train_time_s"] == 20.0 and pfnet["epoch_time_s"] == 3.0
+    assert pfnet["best_val_cd_l2"] == pytest.approx(1.0)
+    assert pfnet["plateau"]["seed"] == 1 and pfnet["plateau"]["gain"] == pytest.approx(1 / 3)
+    assert not pfnet["plateau"]["levelled"] and mlp["plateau"]["levelled"]
+    # One seed: no spread.
+    (single,) = reproduce.summarize_settings(runs[:1])
+    assert single["missing"]["std"]["pred_to_gt"] is None
+    assert single["missing"]["mean"] == runs[0]["missing"]["mean"]
+
+
+def test_report_tables_and_claims_use_the_seed_means():
+    runs = [
+        _record("pfnet-vanilla", 0, {"chair": (1.0, 1.0)}),
+        _record("mr-cmlp", 0, {"chair": (2.0, 2.0)}),
+        _record("pfnet-vanilla", 1, {"chair": (3.0, 3.0)}),
+        _record("mr-cmlp", 1, {"chair": (2.5, 2.5)}),
+    ]
+    settings = reproduce.summarize_settings(runs)
+    table = reproduce.region_table(settings, "missing")
+    assert table[0] == "| category | n | PF-Net (vanilla) | MR-CMLP |"
+    assert table[2] == "| chair | 2 | 2.000 / 2.000 | 2.250 / 2.250 |"
+    assert table[3] == "| **mean** | | **2.000 / 2.000** | 2.250 / 2.250 |"
+    assert table[4] == "| std over seeds | | ± 1.414 / ± 1.414 | ± 0.354 / ± 0.354 |"
+    (note,) = reproduce.ordering_notes(settings, runs)
+    assert note == (
+        "- PF-Net (vanilla) vs MR-CMLP (the point pyramid decoder helps): "
+        "CD-L2 4.000 vs 4.500, holds here (in 1 of 2 seeds)."
+    )
 
 
 def test_plateau_measures_the_last_quarter():
@@ -90,13 +181,23 @@ def test_reproduce_end_to_end_resumes_publishes_and_fills_the_readme(
     readme.write_text(f"# x\n{README_BEGIN}\n{README_END}\n")
     argv = ["reproduce", "--out", str(out), "--data", str(tiny_dataset), "--device", "cpu"]
     argv += ["--models", "pfnet", "mlp", "--ratios", "0.25", "0.5", "--width", "0.125"]
-    argv += ["--batch-size", "8", "--gallery-count", "2"]
+    argv += ["--batch-size", "8", "--gallery-count", "2", "--seeds", "0", "1"]
     assert main([*argv, "--epochs", "2"]) == 0
     text = capsys.readouterr().out
-    assert "pfnet-25: training 2 epochs on cpu" in text
+    assert "pfnet-25-seed0: training 2 epochs on cpu" in text
 
     results = json.loads((out / "results.json").read_text())
-    assert [r["name"] for r in results["runs"]] == ["pfnet-25", "mlp-25", "pfnet-50"]
+    assert [r["name"] for r in results["runs"]] == [
+        f"{setting}-seed{seed}" for seed in (0, 1) for setting in ("pfnet-25", "mlp-25", "pfnet-50")
+    ]
+    assert [s["name"] for s in results["settings"]] == ["pfnet-25", "mlp-25", "pfnet-50"]
+    assert results["settings"] == reproduce.summarize_settings(results["runs"])
+    assert results["seeds"] == [0, 1] and "seed" not in results["config"]
+    for seed in (0, 1):
+        config = json.loads((out / "runs" / f"mlp-25-seed{seed}" / "config.json").read_text())
+        assert config["seed"] == seed
+    # Different seeds train different networks.
+    assert results["runs"][0]["curve"] != results["runs"][3]["curve"]
     assert results["preset"] == "small" and results["config"]["width"] == 0.125
     assert results["dataset"]["splits"] == {"train": 24, "val": 8, "test": 12}
     for run in results["runs"]:
@@ -107,6 +208,9 @@ def test_reproduce_end_to_end_resumes_publishes_and_fills_the_readme(
             assert report["region"] == region and report["missing"] == []
             assert run[region]["mean"] == report["mean"]
             assert sum(c["n"] for c in run[region]["categories"].values()) == 12
+    mean = results["settings"][0]["missing"]["mean"]["pred_to_gt"]
+    seed_means = [results["runs"][k]["missing"]["mean"]["pred_to_gt"] for k in (0, 3)]
+    assert mean == pytest.approx(sum(seed_means) / 2)
     for name in ("curves.png", "gallery.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
     report = (out / "results.md").read_text()
@@ -115,17 +219,17 @@ def test_reproduce_end_to_end_resumes_publishes_and_fills_the_readme(
 
     # Longer schedule: finished runs resume; a third call finds everything trained.
     assert main([*argv, "--epochs", "3"]) == 0
-    assert "pfnet-25: resuming at epoch 3 of 3" in capsys.readouterr().out
+    assert "pfnet-25-seed1: resuming at epoch 3 of 3" in capsys.readouterr().out
     assert main([*argv, "--epochs", "3", "--publish", str(pub), "--readme", str(readme)]) == 0
     text = capsys.readouterr().out
-    assert "mlp-25: already trained (3 epochs)" in text
+    assert "mlp-25-seed0: already trained (3 epochs)" in text
     assert f"updated the results section of {readme}" in text
     results = json.loads((pub / "results.json").read_text())
-    assert [r["epochs"] for r in results["runs"]] == [3, 3, 3]
+    assert [r["epochs"] for r in results["runs"]] == [3] * 6
     assert readme_section(readme) == render_report(results, "docs/results/").strip("\n")
     published = sorted(str(p.relative_to(pub)) for p in pub.rglob("*") if p.is_file())
     assert not [p for p in published if p.endswith(".pt") or "predictions" in p]
-    assert "runs/mlp-25/log.jsonl" in published and "gallery.png" in published
+    assert "runs/mlp-25-seed1/log.jsonl" in published and "gallery.png" in published
 
     # Another configuration in the same folder is refused, not mixed in.
     assert main([*argv, "--epochs", "3", "--width", "0.25"]) == 1
@@ -145,6 +249,10 @@ def test_readme_results_are_the_published_run():
     results = json.loads((PUBLISHED / "results.json").read_text())
     assert readme_section(ROOT / "README.md") == render_report(results, "docs/results/").strip("\n")
     assert (PUBLISHED / "results.md").read_text() == render_report(results)
+    assert results["settings"] == reproduce.summarize_settings(results["runs"])
+    assert [r["name"] for r in results["runs"]] == [
+        r.name for r in study_runs(reproduce.STUDY_MODELS, reproduce.STUDY_RATIOS, results["seeds"])
+    ]
     for run in results["runs"]:
         folder = PUBLISHED / "runs" / run["name"]
         for region in ("missing", "whole"):
@@ -155,6 +263,7 @@ def test_readme_results_are_the_published_run():
         assert [row["val_cd_l2"] for row in log[1:]] == run["curve"]["val_cd_l2"]
         config = json.loads((folder / "config.json").read_text())
         assert config["model"] == run["model"] and config["missing_ratio"] == run["missing_ratio"]
+        assert config["seed"] == run["seed"]
         assert config["epochs"] == results["config"]["epochs"]
         # Every model was trained until validation levelled off.
         assert run["plateau"] == plateau(run["curve"]["val_cd_l2"])

@@ -3,17 +3,21 @@
 The study of the paper's Tables 2, 4 and 5:
 
 * the five generators of the ablation (PF-Net, PF-Net vanilla, MR-CMLP, CMLP, MLP) at 25 %
-  missing, with identical data, seed, epochs and schedule;
-* PF-Net at 50 % and 75 % missing (the robustness study; M changes with the ratio).
+  missing, with identical data, epochs and schedule;
+* PF-Net at 50 % and 75 % missing (the robustness study; M changes with the ratio);
+* every such setting trained once per seed (0, 1, 2 by default), the tables giving the mean
+  over the seeds and the spread between them.
 
 Every run is predicted on the test split with the deterministic test protocol and scored on
 the missing region and on the whole cloud. The results folder::
 
     OUT/data/                    the prepared data set (reused when present)
-    OUT/runs/<run>/              config.json, log.jsonl, curves.png, best.pt, last.pt
+    OUT/runs/<run>/              config.json, log.jsonl, curves.png, best.pt, last.pt;
+                                 <run> is <model>-<percent missing>-seed<seed>
     OUT/runs/<run>/predictions/  predicted missing regions of the test split
     OUT/runs/<run>/eval-missing.json, eval-whole.json
-    OUT/results.json             everything below is built from this file
+    OUT/results.json             every run's record and the settings combined over seeds;
+                                 everything below is built from this file
     OUT/results.md               the README section
     OUT/curves.png               validation curves of every run
     OUT/gallery.png              the same test shapes completed by each model
@@ -28,6 +32,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import platform
 import shutil
@@ -55,6 +60,9 @@ MODEL_TITLES = {
 }
 BASE_RATIO = 0.25
 STUDY_RATIOS = (0.25, 0.5, 0.75)
+# Training seeds: every setting is trained once per seed, so the tables can say how much of a
+# difference between two models is larger than the spread between seeds of one model.
+STUDY_SEEDS = (0, 1, 2)
 
 # The schedule of each preset in the study. ``paper`` is the authors' (200 epochs, StepLR 40).
 # ``small`` trains 4 times the preset's 30 epochs with the learning-rate steps spread to match,
@@ -100,22 +108,36 @@ class StudyRun:
     Attributes:
         model: Generator name.
         missing_ratio: Fraction of each cloud removed by the crop.
+        seed: Training seed (initialisation, shuffling, crops).
     """
 
     model: str
     missing_ratio: float
+    seed: int = 0
+
+    @property
+    def setting(self) -> str:
+        """The model and ratio, shared by the seeds of one setting, e.g. ``pfnet-25``."""
+        return f"{self.model}-{round(self.missing_ratio * 100)}"
 
     @property
     def name(self) -> str:
-        """Folder name, e.g. ``pfnet-25``."""
-        return f"{self.model}-{round(self.missing_ratio * 100)}"
+        """Folder name, e.g. ``pfnet-25-seed0``."""
+        return f"{self.setting}-seed{self.seed}"
 
 
-def study_runs(models: Sequence[str], ratios: Sequence[float]) -> list[StudyRun]:
-    """The runs: every model at 25 % missing, then PF-Net at every other ratio."""
-    runs = [StudyRun(m, BASE_RATIO) for m in models]
-    if "pfnet" in models:
-        runs += [StudyRun("pfnet", r) for r in ratios if r != BASE_RATIO]
+def study_runs(
+    models: Sequence[str], ratios: Sequence[float], seeds: Sequence[int] = (0,)
+) -> list[StudyRun]:
+    """The runs, seed by seed: every model at 25 % missing, then PF-Net at the other ratios.
+
+    Seeds come outermost, so a study stopped early has whole seeds rather than whole models.
+    """
+    runs = []
+    for seed in seeds:
+        runs += [StudyRun(m, BASE_RATIO, seed) for m in models]
+        if "pfnet" in models:
+            runs += [StudyRun("pfnet", r, seed) for r in ratios if r != BASE_RATIO]
     return runs
 
 
@@ -154,11 +176,14 @@ def plateau(curve: Sequence[float], tolerance: float = PLATEAU_TOLERANCE) -> dic
     return {"window": window, "gain": gain, "levelled": gain < tolerance}
 
 
-def study_config(preset: str, seed: int, **overrides: Any) -> Any:
-    """The configuration shared by every run: the preset with the study's schedule."""
+def study_config(preset: str, **overrides: Any) -> Any:
+    """The configuration shared by every run: the preset with the study's schedule.
+
+    Each run then sets its own model, missing ratio and seed.
+    """
     from pfnet.training.config import preset_config
 
-    changes = {**STUDY_SCHEDULES.get(preset, {}), "seed": seed}
+    changes = dict(STUDY_SCHEDULES.get(preset, {}))
     changes.update({k: v for k, v in overrides.items() if v is not None})
     return preset_config(preset).replace(**changes)
 
@@ -172,7 +197,7 @@ def train_run(
     """Train ``run`` to ``base.epochs``, resuming or skipping what an earlier call did."""
     from pfnet.training import train
 
-    config = base.replace(model=run.model, missing_ratio=run.missing_ratio)
+    config = base.replace(model=run.model, missing_ratio=run.missing_ratio, seed=run.seed)
     done = completed_epochs(run_dir)
     if (run_dir / "last.pt").is_file():
         stored = json.loads((run_dir / "config.json").read_text())
@@ -230,8 +255,10 @@ def evaluate_run(run: StudyRun, data_dir: Path, run_dir: Path, device: str) -> d
     best = min(range(len(curve)), key=curve.__getitem__)
     return {
         "name": run.name,
+        "setting": run.setting,
         "model": run.model,
         "missing_ratio": run.missing_ratio,
+        "seed": run.seed,
         "n_missing": missing_count(n_points, run.missing_ratio),
         "parameters": int(sum(p.numel() for p in model.parameters())),
         # Measured wall time, and the median epoch: robust to other load on the machine.
@@ -256,6 +283,77 @@ def _summary(report: dict[str, Any]) -> dict[str, Any]:
     return {"categories": report["categories"], "mean": report["mean"]}
 
 
+def _mean_metrics(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Key-wise mean of metric dicts; the sample count ``n`` is the same in each and kept."""
+    return {k: (rows[0][k] if k == "n" else float(np.mean([r[k] for r in rows]))) for k in rows[0]}
+
+
+def _region_over_seeds(runs: list[dict[str, Any]], region: str) -> dict[str, Any]:
+    """One region's metrics of the seeds of a setting: means, and the spread of the mean row."""
+    categories = runs[0][region]["categories"]
+    means = [r[region]["mean"] for r in runs]
+    return {
+        "categories": {
+            c: _mean_metrics([r[region]["categories"][c] for r in runs]) for c in categories
+        },
+        "mean": _mean_metrics(means),
+        # Sample standard deviation over seeds of the mean over categories (None for one seed).
+        "std": {
+            k: (float(np.std([m[k] for m in means], ddof=1)) if len(means) > 1 else None)
+            for k in means[0]
+        },
+    }
+
+
+def _gain_or_lowest(gain: float | None) -> float:
+    return -math.inf if gain is None else gain
+
+
+def summarize_settings(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The runs of each setting (model, missing ratio) combined over their seeds.
+
+    Args:
+        runs: Run records (``evaluate_run``), any number of seeds per setting.
+
+    Returns:
+        One record per setting, in order of first appearance: the metrics of both regions
+        averaged over the seeds (with ``std``, the spread over seeds of the overall mean),
+        training time summed over the seeds, the median epoch time, each seed's best epoch,
+        the mean best validation CD-L2, and the plateau check of the seed that improved most
+        in its last quarter (``levelled`` only when every seed levelled off).
+    """
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for run in runs:
+        groups.setdefault(run["setting"], []).append(run)
+    settings = []
+    for name, group in groups.items():
+        first = group[0]
+        worst = max(group, key=lambda r: _gain_or_lowest(r["plateau"]["gain"]))
+        settings.append(
+            {
+                "name": name,
+                "model": first["model"],
+                "missing_ratio": first["missing_ratio"],
+                "n_missing": first["n_missing"],
+                "parameters": first["parameters"],
+                "seeds": [r["seed"] for r in group],
+                "epochs": first["epochs"],
+                "train_time_s": round(sum(r["train_time_s"] for r in group), 1),
+                "epoch_time_s": round(float(np.median([r["epoch_time_s"] for r in group])), 2),
+                "best_epochs": [r["best_epoch"] for r in group],
+                "best_val_cd_l2": float(np.mean([r["best_val_cd_l2"] for r in group])),
+                "plateau": {
+                    **worst["plateau"],
+                    "seed": worst["seed"],
+                    "levelled": all(r["plateau"]["levelled"] for r in group),
+                },
+                "missing": _region_over_seeds(group, "missing"),
+                "whole": _region_over_seeds(group, "whole"),
+            }
+        )
+    return settings
+
+
 def reproduce(
     out: Path,
     *,
@@ -263,7 +361,8 @@ def reproduce(
     data: Path | None = None,
     preset: str,
     device: str,
-    seed: int = 0,
+    seeds: Sequence[int] = STUDY_SEEDS,
+    data_seed: int = 0,
     models: Sequence[str] = STUDY_MODELS,
     ratios: Sequence[float] = STUDY_RATIOS,
     overrides: dict[str, Any] | None = None,
@@ -273,18 +372,18 @@ def reproduce(
     """Run the study into ``out`` (see the module docstring); returns ``results.json``."""
     from pfnet.data import prepare_dataset, read_manifest
 
-    base = study_config(preset, seed, **(overrides or {}))
+    base = study_config(preset, **(overrides or {}))
     data_dir = data if data is not None else out / "data"
     if not (data_dir / "manifest.json").is_file():
         if data is not None:
             raise DataError(f"--data {data} is not a prepared data set (no manifest.json)")
         log(f"preparing the data set from {source or 'procedural shapes'} into {data_dir}")
-        report = prepare_dataset(source, data_dir, seed=seed, progress=None)
+        report = prepare_dataset(source, data_dir, seed=data_seed, progress=None)
         log(report.summary())
     manifest = read_manifest(data_dir)
 
     records = []
-    for run in study_runs(models, ratios):
+    for run in study_runs(models, ratios, seeds):
         run_dir = out / "runs" / run.name
         train_run(run, base, data_dir, run_dir, device, log)
         t0 = time.monotonic()
@@ -295,15 +394,19 @@ def reproduce(
             f"GT→Pred {records[-1]['missing']['mean']['gt_to_pred']:.3f} (×1000)"
         )
 
+    config = base.to_dict()
+    del config["seed"]  # each run has its own; see "seeds"
     results = {
         "format": "pfnet-results",
-        "version": 1,
+        "version": 2,
         "created": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": _machine(device),
         "dataset": _dataset_summary(manifest),
         "preset": preset,
-        "config": base.to_dict(),
+        "config": config,
+        "seeds": list(seeds),
         "runs": records,
+        "settings": summarize_settings(records),
         # Training and evaluation of every run, whichever calls did them.
         "study_time_s": round(sum(r["train_time_s"] + r["eval_time_s"] for r in records), 1),
     }
@@ -356,7 +459,11 @@ def write_results(out: Path, results: dict[str, Any], data_dir: Path, gallery_co
 
 
 def plot_curves(path: Path, results: dict[str, Any]) -> Path:
-    """Validation CD-L2 per epoch of every run: the ablation left, the ratios right."""
+    """Validation CD-L2 per epoch of every setting: the ablation left, the ratios right.
+
+    Each setting is drawn as the mean over its seeds with the band between the lowest and the
+    highest seed; a dot marks each seed's best epoch (the checkpoint that was tested).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -366,23 +473,45 @@ def plot_curves(path: Path, results: dict[str, Any]) -> Path:
 
     fig = Figure(figsize=(10, 3.6), dpi=90)
     axes = fig.subplots(1, 2)
+    settings = results["settings"]
     groups = (
         (
             "missing 25 %: the five models",
-            [r for r in results["runs"] if r["missing_ratio"] == BASE_RATIO],
+            [s for s in settings if s["missing_ratio"] == BASE_RATIO],
             "model",
         ),
-        ("PF-Net: missing ratio", [r for r in results["runs"] if r["model"] == "pfnet"], "ratio"),
+        ("PF-Net: missing ratio", [s for s in settings if s["model"] == "pfnet"], "ratio"),
     )
-    for ax, (title, runs, key) in zip(axes, groups, strict=True):
-        for run in runs:
-            label = MODEL_TITLES[run["model"]] if key == "model" else f"{run['missing_ratio']:.0%}"
-            line = ax.plot(run["curve"]["epoch"], run["curve"]["val_cd_l2"], label=label)[0]
-            ax.plot(run["best_epoch"], run["best_val_cd_l2"], "o", color=line.get_color(), ms=3)
+    n_seeds = len(results["seeds"])
+    for ax, (title, group, key) in zip(axes, groups, strict=True):
+        for setting in group:
+            runs = [r for r in results["runs"] if r["setting"] == setting["name"]]
+            length = min(len(r["curve"]["epoch"]) for r in runs)
+            epochs = runs[0]["curve"]["epoch"][:length]
+            curves = np.array([r["curve"]["val_cd_l2"][:length] for r in runs])
+            label = (
+                MODEL_TITLES[setting["model"]]
+                if key == "model"
+                else (f"{setting['missing_ratio']:.0%}")
+            )
+            line = ax.plot(epochs, curves.mean(axis=0), label=label, lw=1.2)[0]
+            if len(runs) > 1:
+                ax.fill_between(
+                    epochs,
+                    curves.min(axis=0),
+                    curves.max(axis=0),
+                    color=line.get_color(),
+                    alpha=0.2,
+                )
+            for r in runs:
+                ax.plot(r["best_epoch"], r["best_val_cd_l2"], "o", color=line.get_color(), ms=2.5)
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
         ax.set_ylabel("validation CD-L2 ×1000 (missing region)")
-        ax.set_title(title, fontsize=10)
+        ax.set_title(
+            title + (f" (mean of {n_seeds} seeds, band: min-max)" if n_seeds > 1 else ""),
+            fontsize=9,
+        )
         ax.grid(True, which="both", alpha=0.3)
         if runs:
             ax.legend(fontsize=8)
@@ -401,7 +530,9 @@ def render_comparison(
     from pfnet.io import read_point_cloud
     from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
 
-    runs = [r for r in results["runs"] if r["missing_ratio"] == BASE_RATIO]
+    # One seed's predictions (the first): an average of seeds is no one model's output.
+    seed = results["seeds"][0]
+    runs = [r for r in results["runs"] if r["missing_ratio"] == BASE_RATIO and r["seed"] == seed]
     if not runs or count < 1:
         return None
     clouds = load_split(data_dir, "test")
@@ -444,32 +575,48 @@ def _minutes(seconds: float) -> str:
     return f"{seconds / 60:.1f} min"
 
 
+def _hours(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 5400 else _minutes(seconds)
+
+
 def _cd(run: dict[str, Any], region: str = "missing") -> float:
     mean = run[region]["mean"]
     return float(mean["pred_to_gt"] + mean["gt_to_pred"])
 
 
-def region_table(runs: list[dict[str, Any]], region: str) -> list[str]:
-    """Markdown rows: one per category and the mean, one column per run."""
-    header = "| category | n | " + " | ".join(MODEL_TITLES[r["model"]] for r in runs) + " |"
-    lines = [header, "|---|---:|" + "---:|" * len(runs)]
-    categories = sorted(runs[0][region]["categories"])
+def _spread(std: dict[str, Any]) -> str:
+    return f"± {std['pred_to_gt']:.3f} / ± {std['gt_to_pred']:.3f}"
+
+
+def region_table(settings: list[dict[str, Any]], region: str) -> list[str]:
+    """Markdown rows: one per category, the mean, and its spread over seeds; a column each."""
+    header = "| category | n | " + " | ".join(MODEL_TITLES[s["model"]] for s in settings) + " |"
+    lines = [header, "|---|---:|" + "---:|" * len(settings)]
+    categories = sorted(settings[0][region]["categories"])
     for cat in categories:
-        n = runs[0][region]["categories"][cat]["n"]
-        cells = [_pair(r[region]["categories"][cat]) for r in runs]
+        n = settings[0][region]["categories"][cat]["n"]
+        cells = [_pair(s[region]["categories"][cat]) for s in settings]
         lines.append(f"| {cat} | {n} | " + " | ".join(cells) + " |")
-    best = min(range(len(runs)), key=lambda k: _cd(runs[k], region))
+    best = min(range(len(settings)), key=lambda k: _cd(settings[k], region))
     cells = [
-        f"**{_pair(r[region]['mean'])}**" if k == best else _pair(r[region]["mean"])
-        for k, r in enumerate(runs)
+        f"**{_pair(s[region]['mean'])}**" if k == best else _pair(s[region]["mean"])
+        for k, s in enumerate(settings)
     ]
     lines.append("| **mean** | | " + " | ".join(cells) + " |")
+    if settings[0][region]["std"]["pred_to_gt"] is not None:
+        cells = [_spread(s[region]["std"]) for s in settings]
+        lines.append("| std over seeds | | " + " | ".join(cells) + " |")
     return lines
 
 
-def ordering_notes(runs: list[dict[str, Any]]) -> list[str]:
-    """The paper's ablation claims, each checked against the missing-region means."""
-    by_model = {r["model"]: r for r in runs}
+def ordering_notes(settings: list[dict[str, Any]], runs: list[dict[str, Any]]) -> list[str]:
+    """The paper's ablation claims, each checked on the missing-region means.
+
+    A claim is checked on the means over seeds and, seed by seed, on the two models trained
+    with the same seed.
+    """
+    by_model = {s["model"]: s for s in settings}
+    cd = {(r["model"], r["seed"]): _cd(r) for r in runs if r["missing_ratio"] == BASE_RATIO}
     claims = (
         ("pfnet", "pfnet-vanilla", "the adversarial loss helps"),
         ("pfnet-vanilla", "mr-cmlp", "the point pyramid decoder helps"),
@@ -481,29 +628,40 @@ def ordering_notes(runs: list[dict[str, Any]]) -> list[str]:
         if better in by_model and worse in by_model:
             a, b = _cd(by_model[better]), _cd(by_model[worse])
             verdict = "holds" if a < b else "does **not** hold"
+            seeds = [s for s in by_model[better]["seeds"] if (worse, s) in cd]
+            wins = sum(cd[(better, s)] < cd[(worse, s)] for s in seeds)
+            per_seed = f" (in {wins} of {len(seeds)} seeds)" if len(seeds) > 1 else ""
             notes.append(
                 f"- {MODEL_TITLES[better]} vs {MODEL_TITLES[worse]} ({claim}): "
-                f"CD-L2 {a:.3f} vs {b:.3f}, {verdict} here."
+                f"CD-L2 {a:.3f} vs {b:.3f}, {verdict} here{per_seed}."
             )
     return notes
 
 
 def render_report(results: dict[str, Any], assets: str = "") -> str:
     """The README section (Markdown) for ``results``; images are linked under ``assets``."""
-    runs = results["runs"]
-    base = [r for r in runs if r["missing_ratio"] == BASE_RATIO]
-    ratios = sorted((r for r in runs if r["model"] == "pfnet"), key=lambda r: r["missing_ratio"])
+    settings = results["settings"]
+    base = [s for s in settings if s["missing_ratio"] == BASE_RATIO]
+    ratios = sorted(
+        (s for s in settings if s["model"] == "pfnet"), key=lambda s: s["missing_ratio"]
+    )
     data, machine, config = results["dataset"], results["machine"], results["config"]
+    seeds = results["seeds"]
     device = "CPU" if machine["device"] == "cpu" else f"GPU ({machine['name']})"
     splits = ", ".join(f"{n} {s}" for s, n in data["splits"].items())
+    seed_text = (
+        f"seeds {', '.join(map(str, seeds))} (every figure is the mean over the seeds)"
+        if len(seeds) > 1
+        else f"seed {seeds[0]}"
+    )
     lines = [
         f"Data: **{data['source']}**, {data['points']} points per shape ({splits}). "
         f"Preset `{results['preset']}` (width {config['width']}, batch {config['batch_size']}, "
         f"Adam lr {config['lr']}, StepLR {config['lr_step']}/{config['lr_gamma']}), "
-        f"{config['epochs']} epochs, seed {config['seed']}, identical for every run; "
+        f"{config['epochs']} epochs, identical for every run; {seed_text}; "
         f"trained on {device} with {machine['torch_threads']} threads "
-        f"(torch {machine['torch']}); the whole study took "
-        f"{_minutes(results['study_time_s'])}. Tested with `best.pt` (lowest validation CD-L2) "
+        f"(torch {machine['torch']}); the whole study ({len(results['runs'])} runs) took "
+        f"{_hours(results['study_time_s'])}. Tested with `best.pt` (lowest validation CD-L2) "
         "on the deterministic test protocol. Pred→GT / GT→Pred ×1000, lower is better; "
         "the best mean in bold.",
         "",
@@ -533,45 +691,47 @@ def render_report(results: dict[str, Any], assets: str = "") -> str:
             "| missing | M | missing region | whole cloud | paper: missing region (airplane) |",
             "|---:|---:|---:|---:|---:|",
         ]
-        for r in ratios:
-            paper_pair = PAPER_TABLE5_AIRPLANE.get(r["missing_ratio"])
+        for s in ratios:
+            paper_pair = PAPER_TABLE5_AIRPLANE.get(s["missing_ratio"])
             paper_text = f"{paper_pair[0]} / {paper_pair[1]}" if paper_pair else "n/a"
             lines.append(
-                f"| {r['missing_ratio']:.0%} | {r['n_missing']} | {_pair(r['missing']['mean'])} "
-                f"| {_pair(r['whole']['mean'])} | {paper_text} |"
+                f"| {s['missing_ratio']:.0%} | {s['n_missing']} | {_pair(s['missing']['mean'])} "
+                f"| {_pair(s['whole']['mean'])} | {paper_text} |"
             )
         lines.append("")
     lines += [
-        "**Training.** Epoch: training and validation, the median over the run; time: "
-        "median epoch × epochs (the measured sum is in results.json). Last-quarter gain: how "
-        "much the best validation CD-L2 of the last quarter of the epochs improved on the best "
-        f"before it; under {PLATEAU_TOLERANCE:.0%} counts as levelled off.",
+        "**Training.** Best epoch: the epoch of `best.pt`, per seed; val CD-L2: its "
+        "validation CD-L2, mean over seeds; epoch: training and validation, the median "
+        "epoch; time: median epoch × epochs, per seed (the measured sums are in "
+        "results.json). Last-quarter gain: how much the best validation CD-L2 of the last "
+        "quarter of the epochs improved on the best before it, for the seed that gained most; "
+        f"under {PLATEAU_TOLERANCE:.0%} counts as levelled off.",
         "",
-        "| run | parameters | best epoch | val CD-L2 | epoch | time | last-quarter gain |",
+        "| setting | parameters | best epoch | val CD-L2 | epoch | time | last-quarter gain |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in runs:
-        gain = r["plateau"]["gain"]
+    for s in settings:
+        gain = s["plateau"]["gain"]
         gain_text = "n/a" if gain is None else f"{gain:+.1%}"
-        if not r["plateau"]["levelled"]:
+        if not s["plateau"]["levelled"]:
             gain_text += " (still improving)"
         lines.append(
-            f"| {MODEL_TITLES[r['model']]}, {r['missing_ratio']:.0%} | {r['parameters']:,} | "
-            f"{r['best_epoch']} / {r['epochs']} | {r['best_val_cd_l2']:.3f} | "
-            f"{r['epoch_time_s']:.1f} s | {_minutes(r['epoch_time_s'] * r['epochs'])} | "
-            f"{gain_text} |"
+            f"| {MODEL_TITLES[s['model']]}, {s['missing_ratio']:.0%} | {s['parameters']:,} | "
+            f"{', '.join(map(str, s['best_epochs']))} / {s['epochs']} | "
+            f"{s['best_val_cd_l2']:.3f} | {s['epoch_time_s']:.1f} s | "
+            f"{_minutes(s['epoch_time_s'] * s['epochs'])} | {gain_text} |"
         )
     if len(base) > 1:
         observed = sorted(base, key=_cd)
         lines += [
             "",
             "Ranking by mean missing-region CD-L2 (Pred→GT + GT→Pred): "
-            + " < ".join(MODEL_TITLES[r["model"]] for r in observed)
+            + " < ".join(MODEL_TITLES[s["model"]] for s in observed)
             + "; the paper's: "
-            + " < ".join(MODEL_TITLES[m] for m in PAPER_ORDER if any(r["model"] == m for r in base))
+            + " < ".join(MODEL_TITLES[m] for m in PAPER_ORDER if any(s["model"] == m for s in base))
             + ".",
             "",
-            *ordering_notes(base),
+            *ordering_notes(base, results["runs"]),
         ]
     lines += [
         "",
@@ -662,7 +822,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--epochs", type=int, default=None, help="override the schedule's")
     parser.add_argument("--width", type=float, default=None, help="override the preset's")
     parser.add_argument("--batch-size", type=int, default=None, help="override the preset's")
-    parser.add_argument("--seed", type=int, default=0, help="seed of data and training")
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=list(STUDY_SEEDS),
+        metavar="SEED",
+        help="train every setting once per seed (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--data-seed", type=int, default=0, help="seed of the data set's sampling and split (0)"
+    )
     parser.add_argument("--gallery-count", type=int, default=5, help="shapes in the gallery")
     parser.add_argument(
         "--report-only",
@@ -711,7 +881,8 @@ def run(args: argparse.Namespace) -> int:
             data=args.data,
             preset=preset,
             device=device,
-            seed=args.seed,
+            seeds=list(dict.fromkeys(args.seeds)),
+            data_seed=args.data_seed,
             models=list(dict.fromkeys(args.models)),
             ratios=list(dict.fromkeys(args.ratios)),
             overrides={"epochs": args.epochs, "width": args.width, "batch_size": args.batch_size},
