@@ -123,10 +123,21 @@ def test_report_tables_and_claims_use_the_seed_means():
     assert table[2] == "| chair | 2 | 2.000 / 2.000 | 2.250 / 2.250 |"
     assert table[3] == "| **mean** | | **2.000 / 2.000** | 2.250 / 2.250 |"
     assert table[4] == "| std over seeds | | ± 1.414 / ± 1.414 | ± 0.354 / ± 0.354 |"
-    (note,) = reproduce.ordering_notes(settings, runs)
-    assert note == (
-        "- PF-Net (vanilla) vs MR-CMLP (the point pyramid decoder helps): "
-        "CD-L2 4.000 vs 4.500, holds here (in 1 of 2 seeds)."
+    header, _, row = reproduce.claims_table(settings, runs)
+    assert header.startswith("| the paper's claim | models | Pred→GT | GT→Pred | CD-L2 |")
+    assert row == (
+        "| the point pyramid decoder helps | PF-Net (vanilla) vs MR-CMLP | 2.000 vs 2.250 ✓ "
+        "| 2.000 vs 2.250 ✓ | 4.000 vs 4.500 ✓ | 1 of 2 | 1 of 1 |"
+    )
+    # A claim that fails on one metric and holds on the other.
+    runs = [
+        _record("pfnet", 0, {"chair": (1.0, 3.0), "lamp": (1.0, 1.0)}),
+        _record("pfnet-vanilla", 0, {"chair": (2.0, 1.0), "lamp": (2.0, 2.0)}),
+    ]
+    row = reproduce.claims_table(reproduce.summarize_settings(runs), runs)[2]
+    assert row == (
+        "| the adversarial loss helps | PF-Net vs PF-Net (vanilla) | 1.000 vs 2.000 ✓ "
+        "| 2.000 vs 1.500 ✗ | 3.000 vs 3.500 ✓ | 1 of 1 | 1 of 2 |"
     )
 
 
