@@ -14,6 +14,7 @@ from pfnet.render import (
     PREDICTION_COLOR,
     RenderSample,
     render_gallery,
+    row_label,
 )
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -153,3 +154,14 @@ def test_render_panels_draws_any_columns(tmp_path, sphere):
         render_panels(tmp_path / "e.png", [("x", [])])
     with pytest.raises(DataError, match="sample 'y' has a cloud of shape"):
         render_panels(tmp_path / "e.png", [("y", [("input", [(sphere[:, :2], PARTIAL_COLOR)])])])
+
+
+def test_row_label_fits_beside_its_row():
+    assert row_label("cabinet/blend_swap_cc-0_uppercornercabinet", 1.7, 8) == (
+        "cabinet/\nblend_swap_cc-\n0_uppercornercabinet"
+    )
+    long = "chair/" + "x" * 60
+    lines = row_label(long, 1.7, 8).split("\n")
+    assert lines[0] == "chair/" and all(len(line) <= 25 for line in lines)
+    assert "".join(lines) == long
+    assert row_label("scan.ply", 1.7, 8) == "scan.ply"

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -106,6 +107,20 @@ Panel = tuple[str, list[Layer]]
 """A column title and the layers drawn in that panel, back to front."""
 
 
+def row_label(label: str, height_inches: float, fontsize: float) -> str:
+    """``label`` broken into lines that fit beside a row ``height_inches`` tall.
+
+    The category (before the first ``/``) gets a line of its own; a long name is wrapped (at
+    hyphens where it can), so a label never runs into the rows above and below it.
+    """
+    # An average glyph of a sans-serif font is about 0.6 em wide.
+    width = max(8, int(height_inches * 72 / (0.6 * fontsize)))
+    head, slash, tail = label.partition("/")
+    parts = [head + slash, tail] if slash else [label]
+    lines = [line for part in parts for line in textwrap.wrap(part, width=width)]
+    return "\n".join(lines)
+
+
 def render_panels(
     out: str | os.PathLike[str],
     rows: list[tuple[str, list[Panel]]],
@@ -190,8 +205,7 @@ def render_panels(
                     ax.text2D(
                         0.0,
                         0.5,
-                        # "category/name" on two lines, so long names stay beside their row.
-                        label.replace("/", "/\n", 1),
+                        row_label(label, panel_inches, fontsize=8),
                         transform=ax.transAxes,
                         rotation=90,
                         va="center",
