@@ -772,7 +772,8 @@ def render_report(results: dict[str, Any], assets: str = "") -> str:
         "",
     ]
     if data.get("credits"):
-        lines += ["Shapes: " + "; ".join(data["credits"]) + ".", ""]
+        # The catalogues' licence strings carry doubled spaces; one space reads cleanly.
+        lines += ["Shapes: " + "; ".join(" ".join(c.split()) for c in data["credits"]) + ".", ""]
     return "\n".join(lines)
 
 
