@@ -21,7 +21,7 @@ def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys)
     text = capsys.readouterr().out
     assert "sudo apt-get install sweethome3d-furniture" in text
     assert "Using procedural shapes" in text
-    assert "one epoch took" in text and "training 1 epoch(s)" in text
+    assert "an epoch takes" in text and "training 2 epochs in all" in text
     for step in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
         assert step in text
     assert (out / "data" / "manifest.json").is_file()
@@ -47,3 +47,11 @@ def test_demo_argument_errors(tmp_path, capsys):
     assert "--epochs must be at least 1" in capsys.readouterr().err
     assert main(["demo", "--out", out, "--source", str(tmp_path / "none")]) == 1
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_the_budget_is_filled_with_epochs_timed_after_start_up():
+    # 60 s left at 2.5 s an epoch: 24 more after the two timed ones; capped at 3x the preset.
+    assert demo.epochs_for_budget(60.0, 2.5, 30) == 26
+    assert demo.epochs_for_budget(600.0, 2.5, 30) == 90
+    assert demo.epochs_for_budget(-5.0, 2.5, 30) == 2  # start-up ate the budget
+    assert demo.epochs_for_budget(10.0, 0.0, 30) == 90

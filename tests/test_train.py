@@ -17,7 +17,7 @@ from pfnet.cli import main  # noqa: E402
 from pfnet.errors import ConfigError, DataError  # noqa: E402
 from pfnet.models import MODELS  # noqa: E402
 from pfnet.training import preset_config, train  # noqa: E402
-from pfnet.training.loop import TrainingStep  # noqa: E402
+from pfnet.training.step import TrainingStep  # noqa: E402
 
 # The small preset with more, smaller batches: ~6 steps per epoch on the 24 training shapes.
 FAST = preset_config("small").replace(batch_size=4, epochs=12)
@@ -28,7 +28,10 @@ def _rows(run: Path) -> list[dict]:
 
 
 def _without_times(rows: list[dict]) -> list[dict]:
-    return [{k: v for k, v in row.items() if k != "time_s"} for row in rows]
+    return [
+        {k: v for k, v in row.items() if k not in ("time_s", "compute_s", "train_s")}
+        for row in rows
+    ]
 
 
 @pytest.mark.slow
@@ -49,7 +52,10 @@ def test_pfnet_learns_on_the_tiny_dataset(tiny_dataset: Path, tmp_path: Path) ->
     assert not [p for p in run.iterdir() if p.name.startswith(".")]  # no temporary files left
     best = read_checkpoint(run / "best.pt")
     assert best["epoch"] == summary["best_epoch"]
-    assert best["history"][-1]["val_cd_l2"] == summary["best_val_cd_l2"]
+    assert best["metrics"]["val_cd_l2"] == summary["best_val_cd_l2"]
+    # best.pt holds what inference needs, not the optimiser states of last.pt.
+    assert "optimizer_g" not in best and "discriminator" not in best
+    assert (run / "best.pt").stat().st_size < 0.5 * (run / "last.pt").stat().st_size
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
@@ -190,3 +196,77 @@ def test_an_empty_val_split_trains_without_validation(tiny_dataset: Path, tmp_pa
     rows = _rows(tmp_path / "run")
     assert rows[0] == {"epoch": 0} and "val_cd_l2" not in rows[1]
     assert (tmp_path / "run" / "best.pt").is_file()
+
+
+def test_bf16_autocast_stays_close_to_fp32(tiny_dataset: Path, tmp_path: Path) -> None:
+    config = FAST.replace(epochs=1, batch_size=6, width=0.125)
+    runs = {}
+    for precision in ("fp32", "bf16"):
+        run = tmp_path / precision
+        train(config.replace(precision=precision), tiny_dataset, run, device="cpu", progress=False)
+        runs[precision] = _rows(run)[1]
+    fp32, bf16 = runs["fp32"], runs["bf16"]
+    for key in ("cd_detail", "cd_primary", "cd_secondary", "loss_d", "val_cd_l2"):
+        assert bf16[key] == pytest.approx(fp32[key], rel=0.1), key
+    assert bf16[key] != fp32[key]  # it did run in another precision
+
+
+def test_chamfer_stays_float32_under_autocast() -> None:
+    from pfnet.losses import chamfer_distance
+
+    generator = torch.Generator().manual_seed(0)
+    pred = torch.rand(2, 300, 3, generator=generator)
+    gt = torch.rand(2, 200, 3, generator=generator)
+    exact = chamfer_distance(pred, gt)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under = chamfer_distance(pred.bfloat16(), gt)
+    reference = chamfer_distance(pred.bfloat16().float(), gt)
+    for a, b in zip(under, reference, strict=True):
+        assert a.dtype == torch.float32 and torch.allclose(a, b, rtol=1e-6)
+    assert not torch.equal(exact[0], under[0])  # the bf16 input itself was rounded
+
+
+@pytest.mark.slow
+def test_compiled_training_matches_and_saves_plain_weights(tiny_dataset: Path, tmp_path: Path):
+    config = FAST.replace(model="mlp", epochs=1, batch_size=8, width=0.125)  # 3 equal batches
+    plain = train(config, tiny_dataset, tmp_path / "plain", device="cpu", progress=False)
+    compiled = train(
+        config.replace(compile=True), tiny_dataset, tmp_path / "compiled", device="cpu",
+        progress=False,
+    )  # fmt: skip
+    assert compiled["final"]["cd_detail"] == pytest.approx(plain["final"]["cd_detail"], rel=1e-3)
+    raw = torch.load(tmp_path / "compiled" / "last.pt", weights_only=True)
+    assert raw["config"]["compile"] is True
+    assert not any("_orig_mod" in key for key in raw["model"])
+    load_checkpoint(tmp_path / "compiled" / "best.pt")
+
+
+def test_save_every_and_the_files_a_run_writes(tiny_dataset: Path, tmp_path: Path) -> None:
+    from pfnet.training.config import SaveSchedule
+
+    assert SaveSchedule.parse("10min") == SaveSchedule(seconds=600.0)
+    assert SaveSchedule.parse("90s") == SaveSchedule(seconds=90.0)
+    assert SaveSchedule.parse("1h") == SaveSchedule(seconds=3600.0)
+    assert SaveSchedule.parse("3") == SaveSchedule(epochs=3)
+    for bad in ("0", "0s", "-1", "ten", "5 parsecs", ""):
+        with pytest.raises(ConfigError, match="save_every must be"):
+            SaveSchedule.parse(bad)
+    # Every 2 epochs: after epoch 2 last.pt holds epoch 2, at the end epoch 3.
+    saved: list[tuple[str, int]] = []
+    import pfnet.checkpoint
+
+    original = pfnet.checkpoint.save_checkpoint
+
+    def spy(path, state):
+        saved.append((Path(path).name, state["epoch"]))
+        original(path, state)
+
+    config = FAST.replace(model="mlp", epochs=3, width=0.125, save_every="2")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(pfnet.checkpoint, "save_checkpoint", spy)
+        summary = train(config, tiny_dataset, tmp_path / "run", device="cpu", progress=False)
+    assert [e for name, e in saved if name == "last.pt"] == [2, 3]
+    assert {e for name, e in saved if name == "best.pt"} <= {1, 2, 3}
+    assert summary["checkpoint_write_s"] > 0
+    rows = _rows(tmp_path / "run")
+    assert all(0 < r["compute_s"] <= r["time_s"] for r in rows[2:])

@@ -48,7 +48,17 @@ def test_two_cpu_processes_train_with_ddp(tiny_dataset: Path, tmp_path: Path) ->
     ]
 
     # Resuming a finished DDP run for one more epoch, again with 2 processes.
-    done = _torchrun("--data", str(tiny_dataset), "--out", str(run), "--resume", "--epochs", "3")
+    done = _torchrun(
+        "--data",
+        str(tiny_dataset),
+        "--out",
+        str(run),
+        "--resume",
+        "--epochs",
+        "3",
+        "--device",
+        "cpu",
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in rows] == [0, 1, 2, 3]

@@ -65,6 +65,8 @@ def chamfer_distance(
     Nearest neighbours are found without gradient (:func:`nearest_neighbor_indices`); the
     squared distances to them are then recomputed exactly as ``|p - g|²``, so the values
     match the Rust metric and gradients flow to ``pred`` (and to ``gt`` if it requires them).
+    Always computed in at least float32, with autocast off: a bfloat16 distance matrix would
+    pick wrong neighbours (8 bits of mantissa) and sum the terms coarsely.
 
     Args:
         pred: ``(B, P, 3)`` float predicted clouds.
@@ -88,11 +90,14 @@ def chamfer_distance(
             "pred and gt must have the same batch size; "
             f"got {tuple(pred.shape)} and {tuple(gt.shape)}"
         )
-    pred_index, gt_index = nearest_neighbor_indices(pred, gt, max_chunk_bytes=max_chunk_bytes)
-    nearest_gt = torch.gather(gt, 1, pred_index.unsqueeze(-1).expand(-1, -1, 3))
-    nearest_pred = torch.gather(pred, 1, gt_index.unsqueeze(-1).expand(-1, -1, 3))
-    pred_to_gt = (pred - nearest_gt).square().sum(-1).mean(1)
-    gt_to_pred = (gt - nearest_pred).square().sum(-1).mean(1)
+    dtype = torch.promote_types(torch.promote_types(pred.dtype, gt.dtype), torch.float32)
+    with torch.autocast(pred.device.type, enabled=False):
+        pred, gt = pred.to(dtype), gt.to(dtype)
+        pred_index, gt_index = nearest_neighbor_indices(pred, gt, max_chunk_bytes=max_chunk_bytes)
+        nearest_gt = torch.gather(gt, 1, pred_index.unsqueeze(-1).expand(-1, -1, 3))
+        nearest_pred = torch.gather(pred, 1, gt_index.unsqueeze(-1).expand(-1, -1, 3))
+        pred_to_gt = (pred - nearest_gt).square().sum(-1).mean(1)
+        gt_to_pred = (gt - nearest_pred).square().sum(-1).mean(1)
     return pred_to_gt, gt_to_pred
 
 

@@ -28,8 +28,10 @@ class CompletionDataset(Dataset):
     Crops are made on the fly: ``crop="test"`` is the deterministic test protocol (sample
     ``i`` loses the points nearest ``VIEWPOINTS[i % 5]``); the random crops are a function of
     ``(seed, epoch, index)`` only, so they are reproducible and independent of the DataLoader's
-    workers. Call :meth:`set_epoch` before each epoch for fresh random crops (with
-    ``persistent_workers=True`` the workers keep the epoch they started with).
+    workers. Call :meth:`set_epoch` before each epoch for fresh random crops, or index with
+    ``(epoch, index)`` pairs: workers that live across epochs (``persistent_workers=True``)
+    keep the dataset object they started with, so the training loop's batch sampler sends
+    the epoch with every index.
 
     Args:
         root: A dataset folder written by ``pfnet prepare``.
@@ -79,13 +81,23 @@ class CompletionDataset(Dataset):
             raise ConfigError(f"epoch must be a non-negative integer, got {epoch!r}")
         self.epoch = epoch
 
-    def crop_seed(self, index: int) -> int:
-        """The seed of sample ``index``'s random crop at the current epoch."""
-        state = np.random.SeedSequence([self.seed, self.epoch, index]).generate_state(2, np.uint32)
+    def crop_seed(self, index: int, epoch: int | None = None) -> int:
+        """The seed of sample ``index``'s random crop at ``epoch`` (default: the current one)."""
+        epoch = self.epoch if epoch is None else epoch
+        state = np.random.SeedSequence([self.seed, epoch, index]).generate_state(2, np.uint32)
         return int(state[0]) << 32 | int(state[1])
 
-    def __getitem__(self, index: int) -> dict:
-        index = operator.index(index)
+    def __getitem__(self, key: int | tuple[int, int]) -> dict:
+        """Sample ``key``: an index (at the current epoch) or an ``(epoch, index)`` pair."""
+        epoch = None
+        if isinstance(key, tuple):
+            if len(key) != 2:
+                raise TypeError(f"expected an index or an (epoch, index) pair, got {key!r}")
+            epoch, index = operator.index(key[0]), operator.index(key[1])
+            if epoch < 0:
+                raise ConfigError(f"epoch must be a non-negative integer, got {epoch!r}")
+        else:
+            index = operator.index(key)
         if not -len(self) <= index < len(self):
             raise IndexError(f"index {index} out of range for a dataset of {len(self)} samples")
         index %= len(self)
@@ -100,7 +112,7 @@ class CompletionDataset(Dataset):
             partial, missing = random_crop(
                 complete,
                 self.n_missing,
-                seed=self.crop_seed(index),
+                seed=self.crop_seed(index, epoch),
                 n_regions=_MULTI_REGIONS if self.crop == "multi" else 1,
                 directions="sphere" if self.crop == "sphere" else "viewpoints",
             )

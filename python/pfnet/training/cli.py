@@ -14,6 +14,7 @@ from pathlib import Path
 from pfnet.errors import ConfigError, DataError
 from pfnet.training.config import (
     MODEL_NAMES,
+    PRECISIONS,
     PRESETS,
     TRAIN_CROPS,
     TrainConfig,
@@ -35,7 +36,11 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "lr_step": (int, "StepLR period in epochs"),
     "lr_gamma": (float, "StepLR factor"),
     "adversarial_weight": (float, "λ_adv of the joint loss (paper 0.05)"),
-    "workers": (int, "data-loader worker processes"),
+    "workers": (int, "data-loader worker processes, alive for the whole run"),
+    "save_every": (
+        str,
+        "write last.pt every this long (10min, 90s, 1h) or N epochs (default 10min)",
+    ),
 }
 
 
@@ -51,12 +56,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         flag = "--" + name.replace("_", "-")
         parser.add_argument(flag, type=kind, dest=name, metavar=name.upper(), help=text)
     parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        help="fp32 (exact, default) or bf16 autocast of the networks (Chamfer stays float32)",
+    )
+    parser.add_argument(
+        "--compile",
+        action="store_const",
+        const=True,
+        help="run the networks through torch.compile (slow start, faster steps on a GPU)",
+    )
+    parser.add_argument(
         "--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N"
     )
     parser.add_argument(
         "--resume",
         action="store_true",
-        help="continue the run in --out from its last.pt (only --epochs/--workers may change)",
+        help="continue the run in --out from its last.pt (only --epochs, --workers, "
+        "--precision, --compile and --save-every may change)",
     )
 
 
@@ -65,7 +82,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
 
     With ``--resume`` the base is the run's stored ``config.json`` instead.
     """
-    overrides = {name: getattr(args, name) for name in ("model", "crop", *OVERRIDES)}
+    names = ("model", "crop", "precision", "compile", *OVERRIDES)
+    overrides = {name: getattr(args, name) for name in names}
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if args.resume:
         if args.preset or args.config:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,8 +17,10 @@ from pfnet.errors import ConfigError
 
 MODEL_NAMES = ("pfnet", "pfnet-vanilla", "mlp", "cmlp", "mr-cmlp")
 TRAIN_CROPS = ("viewpoint", "sphere", "multi")
+PRECISIONS = ("fp32", "bf16")
 # Fields that may change when a run is resumed; every other field must match the checkpoint.
-RESUMABLE_FIELDS = ("epochs", "workers")
+# (How a run executes may change; what it learns from may not.)
+RESUMABLE_FIELDS = ("epochs", "workers", "precision", "compile", "save_every")
 
 
 @dataclass(frozen=True)
@@ -45,7 +48,12 @@ class TrainConfig:
         loss_scale: Factor on every Chamfer term of the loss (authors: 100·(d1+d2)/2 → 50).
         crop: Training crop: ``viewpoint`` (one of the five), ``sphere`` or ``multi`` region.
         seed: Seed of initialisation, shuffling and crops.
-        workers: Data-loader worker processes.
+        workers: Data-loader worker processes (kept alive for the whole run).
+        precision: ``fp32`` (exact, the default) or ``bf16``: the networks run under
+            ``torch.autocast`` in bfloat16; the Chamfer distances stay in float32.
+        compile: Run the generator and discriminator through ``torch.compile``.
+        save_every: How often ``last.pt`` is written besides the end and a stop: a time
+            (``10min``, ``90s``, ``1h``) or a number of epochs (``5``).
     """
 
     model: str = "pfnet"
@@ -69,6 +77,9 @@ class TrainConfig:
     crop: str = "viewpoint"
     seed: int = 0
     workers: int = 2
+    precision: str = "fp32"
+    compile: bool = False
+    save_every: str = "10min"
 
     def __post_init__(self) -> None:
         # Lists (TOML, JSON, checkpoints) become tuples so configs compare and hash.
@@ -119,6 +130,50 @@ class TrainConfig:
             return cls(**data)
         except ConfigError as err:
             raise ConfigError(f"{source}: {err}") from None
+
+
+_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|sec|min|m|h)\s*$")
+_SECONDS = {"s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
+
+
+@dataclass(frozen=True)
+class SaveSchedule:
+    """Every how many seconds, or epochs, ``last.pt`` is written (exactly one is set).
+
+    Attributes:
+        seconds: Wall-clock period, checked after every batch.
+        epochs: Period in completed epochs.
+    """
+
+    seconds: float | None = None
+    epochs: int | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> SaveSchedule:
+        """``"10min"``, ``"90s"``, ``"1h"`` (a time) or ``"5"`` (epochs).
+
+        Raises:
+            ConfigError: Anything else, or a zero period.
+        """
+        text = str(text)
+        if re.fullmatch(r"\s*\d+\s*", text):
+            epochs = int(text)
+            if epochs < 1:
+                raise ConfigError(f"save_every must be at least 1 epoch; got {text!r}")
+            return cls(epochs=epochs)
+        match = _DURATION.match(text)
+        if not match or float(match.group(1)) <= 0:
+            raise ConfigError(
+                f"save_every must be a number of epochs (e.g. 5) or a positive time such as "
+                f"90s, 10min or 1h; got {text!r}"
+            )
+        return cls(seconds=float(match.group(1)) * _SECONDS[match.group(2)])
+
+    def due(self, since_save_s: float, epochs_since_save: int, at_epoch_end: bool) -> bool:
+        """Whether ``last.pt`` should be written now."""
+        if self.seconds is not None:
+            return since_save_s >= self.seconds
+        return at_epoch_end and self.epochs is not None and epochs_since_save >= self.epochs
 
 
 def preset_config(name: str) -> TrainConfig:
@@ -255,6 +310,10 @@ def _validate(c: TrainConfig) -> None:
     _require(c.crop in TRAIN_CROPS, "crop", c.crop, f"one of {', '.join(TRAIN_CROPS)}")
     _require(_is_int(c.seed) and c.seed >= 0, "seed", c.seed, "an integer >= 0")
     _require(_is_int(c.workers) and c.workers >= 0, "workers", c.workers, "an integer >= 0")
+    _require(c.precision in PRECISIONS, "precision", c.precision, f"one of {', '.join(PRECISIONS)}")
+    _require(isinstance(c.compile, bool), "compile", c.compile, "true or false")
+    _require(isinstance(c.save_every, str), "save_every", c.save_every, "a string such as 10min")
+    SaveSchedule.parse(c.save_every)
     if c.n_points is not None:
         m = c.n_missing
         if not 1 <= m <= c.n_points - 4:

@@ -8,6 +8,8 @@
 from __future__ import annotations
 
 import os
+import re
+import sys
 from dataclasses import dataclass
 
 import torch
@@ -43,22 +45,52 @@ class DistContext:
         return self.rank == 0
 
 
-def resolve_device(device: str | torch.device, local_rank: int = 0) -> torch.device:
-    """``auto`` -> ``cuda:<local_rank>`` if CUDA is available, else ``cpu``; checks ``cuda``.
+def resolve_device(
+    device: str | torch.device, local_rank: int = 0, local_world_size: int = 1
+) -> torch.device:
+    """The device of process ``local_rank`` of the ``local_world_size`` on this machine.
+
+    ``auto`` takes ``cuda:<local_rank>`` when every local process can have a GPU of its own,
+    else the CPU: a run that asked for nothing in particular should start, and all ranks
+    must agree (they see the same counts). When some GPUs are visible but fewer than the
+    processes, the CPU fallback is announced on stderr. ``cuda`` means ``cuda:<local_rank>``.
 
     Raises:
-        ConfigError: Unknown device string, or CUDA requested but not available.
+        ConfigError: Unknown device string, CUDA requested but not available, or a GPU index
+            beyond the visible ones (the message names both counts).
     """
     name = str(device)
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
     if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ConfigError(f"device {device!r} requested but CUDA is not available")
-        return torch.device(name if ":" in name else f"cuda:{local_rank}")
-    if name != "cpu":
+        if count and count >= local_world_size:
+            return torch.device(f"cuda:{local_rank}")
+        if count and local_rank == 0:
+            print(
+                f"pfnet: {local_world_size} processes on this machine but {count} GPU(s) "
+                f"visible: --device auto trains on the CPU (start at most {count} processes "
+                "per machine to use the GPUs)",
+                file=sys.stderr,
+            )
+        return torch.device("cpu")
+    if name == "cpu":
+        return torch.device("cpu")
+    match = re.fullmatch(r"cuda(?::(\d+))?", name)
+    if match is None:
         raise ConfigError(f"device must be auto, cpu, cuda or cuda:N; got {device!r}")
-    return torch.device("cpu")
+    if not count:
+        raise ConfigError(f"device {device!r} requested but CUDA is not available")
+    index = int(match.group(1)) if match.group(1) is not None else local_rank
+    if index >= count:
+        who = (
+            f"process {local_rank} of {local_world_size} on this machine"
+            if match.group(1) is None
+            else "this process"
+        )
+        raise ConfigError(
+            f"{who} needs GPU {index} but {count} GPU(s) are visible; "
+            "start fewer processes per machine, or use --device cpu"
+        )
+    return torch.device(f"cuda:{index}")
 
 
 def setup(device: str | torch.device = "auto") -> DistContext:
@@ -66,7 +98,8 @@ def setup(device: str | torch.device = "auto") -> DistContext:
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    resolved = resolve_device(device, local_rank)
+    local_world_size = int(os.environ.get("LOCAL_WORLD_SIZE", str(world_size)))
+    resolved = resolve_device(device, local_rank, local_world_size)
     if world_size > 1 and not dist.is_initialized():
         if resolved.type == "cuda":
             torch.cuda.set_device(resolved)

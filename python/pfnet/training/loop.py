@@ -3,19 +3,21 @@
 Per batch, adversarial models take one discriminator step then one generator step (as the
 authors' ``Train_PFNet.py``); the others take a generator step on the completion loss alone.
 After every epoch the generator is validated on the ``val`` split with the deterministic test
-protocol and the same metric functions as ``pfnet evaluate`` (:mod:`pfnet.metrics`), and
-``RUN/last.pt``, ``RUN/best.pt``, ``RUN/log.jsonl`` and ``RUN/curves.png`` are rewritten
-atomically (by rank 0 only under DDP).
+protocol and the same metric functions as ``pfnet evaluate`` (:mod:`pfnet.metrics`).
+
+Files of a run folder (written by rank 0 only under DDP, each replaced atomically):
+``log.jsonl`` after every epoch; ``best.pt`` (what inference needs) whenever validation
+improves; ``last.pt`` (the full state, for ``--resume``) every ``save_every``, at the end and
+on a stop; ``curves.png`` at most every :data:`CURVES_EVERY_S` seconds and at the end.
+Checkpoints are serialised on a background thread (:mod:`pfnet.training.saving`), data-loader
+workers live for the whole run, and the validation batches are built once, so an epoch's wall
+time is spent in training and validation steps.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import multiprocessing
-import multiprocessing.context
-import signal
 import sys
 import time
 from collections.abc import Iterator
@@ -24,34 +26,30 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
-from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import BatchSampler, DataLoader, DistributedSampler, Sampler, Subset
 from tqdm import tqdm
 
-from pfnet.checkpoint import read_checkpoint, save_checkpoint
+from pfnet.checkpoint import read_checkpoint
 from pfnet.errors import ConfigError, DataError
 from pfnet.geometry import farthest_point_sample
 from pfnet.io import atomic_path
-from pfnet.losses import (
-    alpha_for_epoch,
-    completion_loss,
-    discriminator_loss,
-    generator_adversarial_loss,
-    joint_loss,
-)
-from pfnet.models import Discriminator, build_model
+from pfnet.losses import alpha_for_epoch
 from pfnet.models.layers import multi_resolution_indices
 from pfnet.models.pfnet import PRIMARY_POINTS, SECONDARY_POINTS
 from pfnet.training import distributed
-from pfnet.training.config import RESUMABLE_FIELDS, TrainConfig
+from pfnet.training.config import RESUMABLE_FIELDS, SaveSchedule, TrainConfig
 from pfnet.training.distributed import DistContext
+from pfnet.training.runlog import plot_curves, write_log
+from pfnet.training.saving import CheckpointWriter, cpu_snapshot
+from pfnet.training.signals import StopRequest, ignore_stop_signals, start_helpers
+from pfnet.training.step import TrainingStep
 
 LAST = "last.pt"
 BEST = "best.pt"
 LOG = "log.jsonl"
 CURVES = "curves.png"
 VAL_METRIC = "val_cd_l2"  # selects best.pt: Pred→GT + GT→Pred on the missing region, ×1000
+CURVES_EVERY_S = 60.0  # curves.png is redrawn at most this often (and at the end)
 
 
 def train(
@@ -74,13 +72,15 @@ def train(
         out_dir: The run folder (created; must not hold a run unless ``resume``).
         device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
         resume: Continue the run in ``out_dir`` from its ``last.pt`` exactly where it
-            stopped (mid-epoch after Ctrl-C). Only ``epochs`` and ``workers`` may differ
-            from the stored configuration.
+            stopped (mid-epoch after Ctrl-C). Only the fields in
+            :data:`~pfnet.training.config.RESUMABLE_FIELDS` may differ from the stored
+            configuration.
         progress: Show a tqdm bar (default: when stderr is a terminal).
 
     Returns:
         A summary: ``epochs`` completed, ``interrupted``, ``best_epoch``, ``best_val_cd_l2``,
-        ``last`` / ``best`` checkpoint paths, ``world_size`` and the final log row ``final``.
+        ``last`` / ``best`` checkpoint paths, ``world_size``, the final log row ``final``
+        and ``checkpoint_write_s`` (seconds the writer thread spent serialising).
 
     Raises:
         ConfigError: Bad configuration, or a resume that changes the configuration.
@@ -133,206 +133,38 @@ class CompletionCollate:
         return batch
 
 
-class SkipBatches(Sampler[list[int]]):
-    """A batch sampler that leaves out the first ``skip`` batches (mid-epoch resume)."""
+class EpochBatches(Sampler[list[tuple[int, int]]]):
+    """Batches of ``(epoch, index)`` keys of one epoch, optionally without its first batches.
 
-    def __init__(self, batches: BatchSampler, skip: int = 0) -> None:
-        self.batches = batches
-        self.skip = skip
-
-    def __iter__(self) -> Iterator[list[int]]:
-        for i, batch in enumerate(self.batches):
-            if i >= self.skip:
-                yield batch
-
-    def __len__(self) -> int:
-        return max(0, len(self.batches) - self.skip)
-
-
-def _worker_context() -> multiprocessing.context.BaseContext:
-    """Start data-loader workers from a fork server that has imported pfnet but run nothing.
-
-    A plain ``fork`` after the Rust core has run in this process copies its thread pool's
-    state without its threads, and the first batched call in the child never returns.
-    """
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["pfnet.training.loop"])
-    return context
-
-
-def _ignore_sigint(_worker_id: int) -> None:
-    # Ctrl-C reaches the whole process group; the main process decides when to stop, and
-    # workers killed mid-batch would make its last fetch fail.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-class _StopRequest:
-    """SIGINT/SIGTERM handler: the first signal asks to stop after the current batch."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._previous: dict[int, Any] = {}
-
-    def _handle(self, signum: int, _frame: object) -> None:
-        if self.requested and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.requested = True
-        print(
-            "\npfnet train: stopping after this batch and saving (Ctrl-C again to abort)",
-            file=sys.stderr,
-        )
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[_StopRequest]:
-        import threading
-
-        if threading.current_thread() is not threading.main_thread():
-            yield self
-            return
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handle)
-        try:
-            yield self
-        finally:
-            for signum, handler in self._previous.items():
-                signal.signal(signum, handler)
-
-
-class TrainingStep:
-    """The models, optimisers and schedulers of a run, and its per-batch update.
-
-    Adversarial generators (PF-Net) get a :class:`Discriminator`; under DDP both are wrapped
-    in ``DistributedDataParallel``. Models are initialised from ``config.seed``.
+    The epoch travels with every index because the data-loader workers live across epochs
+    and keep the dataset object they started with; ``skip`` leaves out the batches already
+    trained before a mid-epoch stop.
 
     Args:
-        config: The run's configuration, with ``n_points`` set.
-        context: Process / device placement (:func:`pfnet.training.distributed.setup`).
+        sampler: Shuffles (and, under DDP, shards) the indices; reseeded per epoch.
+        batch_size: Clouds per batch (the last batch may be smaller).
     """
 
-    def __init__(self, config: TrainConfig, context: DistContext) -> None:
-        self.config = config
-        self.device = device = context.device
-        torch.manual_seed(config.seed)
-        try:
-            self.generator = build_model(config).to(device)
-        except ConfigError as err:
-            raise ConfigError(
-                f"model {config.model!r} with {config.n_points} points and missing_ratio "
-                f"{config.missing_ratio}: {err}"
-            ) from None
-        self.multi_stage = bool(getattr(self.generator, "multi_stage", False))
-        adversarial = bool(getattr(self.generator, "adversarial", False))
-        self.discriminator = Discriminator(config.width).to(device) if adversarial else None
-        self.g_forward: nn.Module = self.generator
-        self.d_forward: nn.Module | None = self.discriminator
-        if context.distributed:
-            ids = [device] if device.type == "cuda" else None
-            self.g_forward = DistributedDataParallel(self.generator, device_ids=ids)
-            if self.discriminator is not None:
-                self.d_forward = DistributedDataParallel(self.discriminator, device_ids=ids)
-        self.optimizer_g = self._adam(self.generator)
-        self.scheduler_g = self._step_lr(self.optimizer_g)
-        self.optimizer_d = self._adam(self.discriminator) if self.discriminator else None
-        self.scheduler_d = self._step_lr(self.optimizer_d) if self.optimizer_d else None
+    def __init__(self, sampler: DistributedSampler, batch_size: int) -> None:
+        self.sampler = sampler
+        self.batch_size = batch_size
+        self.epoch = 0
+        self.skip = 0
 
-    def _adam(self, module: nn.Module) -> torch.optim.Adam:
-        c = self.config
-        return torch.optim.Adam(
-            module.parameters(), lr=c.lr, betas=c.betas, eps=c.eps, weight_decay=c.weight_decay
-        )
+    def set_epoch(self, epoch: int, skip: int = 0) -> None:
+        """Serve ``epoch``, leaving out its first ``skip`` batches."""
+        self.epoch = epoch
+        self.skip = skip
+        self.sampler.set_epoch(epoch)
 
-    def _step_lr(self, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.StepLR:
-        return torch.optim.lr_scheduler.StepLR(
-            optimizer, step_size=self.config.lr_step, gamma=self.config.lr_gamma
-        )
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        batches = BatchSampler(self.sampler, self.batch_size, drop_last=False)
+        for i, batch in enumerate(batches):
+            if i >= self.skip:
+                yield [(self.epoch, index) for index in batch]
 
-    @property
-    def lr(self) -> float:
-        """The generator's current learning rate."""
-        return float(self.optimizer_g.param_groups[0]["lr"])
-
-    def end_epoch(self) -> None:
-        """Advance the learning-rate schedules by one epoch."""
-        self.scheduler_g.step()
-        if self.scheduler_d is not None:
-            self.scheduler_d.step()
-
-    def state_dict(self) -> dict[str, Any]:
-        """Models, optimisers and schedulers (``None`` where there is no discriminator)."""
-        d, od, sd = self.discriminator, self.optimizer_d, self.scheduler_d
-        return {
-            "model": self.generator.state_dict(),
-            "discriminator": d.state_dict() if d is not None else None,
-            "optimizer_g": self.optimizer_g.state_dict(),
-            "optimizer_d": od.state_dict() if od is not None else None,
-            "scheduler_g": self.scheduler_g.state_dict(),
-            "scheduler_d": sd.state_dict() if sd is not None else None,
-        }
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore what :meth:`state_dict` returned."""
-        self.generator.load_state_dict(state["model"])
-        self.optimizer_g.load_state_dict(state["optimizer_g"])
-        self.scheduler_g.load_state_dict(state["scheduler_g"])
-        if self.discriminator is not None:
-            self.discriminator.load_state_dict(state["discriminator"])
-            self.optimizer_d.load_state_dict(state["optimizer_d"])
-            self.scheduler_d.load_state_dict(state["scheduler_d"])
-
-    def __call__(self, batch: dict[str, Any], alpha: float) -> dict[str, float]:
-        """One discriminator step (adversarial models) then one generator step.
-
-        Args:
-            batch: A batch from :class:`CompletionCollate`.
-            alpha: α of the multi-stage completion loss for this epoch.
-
-        Returns:
-            The batch's losses as floats (``loss_g``, ``cd_detail``, ... and, with a
-            discriminator, ``loss_d`` and ``adv_g``).
-        """
-        device = self.device
-        partial = batch["partial"].to(device, non_blocking=True)
-        missing = batch["missing"].to(device, non_blocking=True)
-        scale_indices = batch.get("scale_indices")
-        secondary_target = batch.get("secondary_target")
-        primary_target = batch.get("primary_target")
-        if secondary_target is not None and primary_target is not None:
-            secondary_target = secondary_target.to(device, non_blocking=True)
-            primary_target = primary_target.to(device, non_blocking=True)
-
-        completion = self.g_forward(partial, scale_indices)
-        losses: dict[str, float] = {}
-        if self.d_forward is not None and self.optimizer_d is not None:
-            # Real and fake are back-propagated one after the other, as the authors do, so
-            # BatchNorm sees each set on its own.
-            self.optimizer_d.zero_grad(set_to_none=True)
-            loss_real = discriminator_loss(self.d_forward(missing), real=True)
-            loss_real.backward()
-            loss_fake = discriminator_loss(self.d_forward(completion.detail.detach()), real=False)
-            loss_fake.backward()
-            self.optimizer_d.step()
-            losses["loss_d"] = float(loss_real.detach() + loss_fake.detach())
-
-        self.optimizer_g.zero_grad(set_to_none=True)
-        loss_com, parts = completion_loss(
-            completion,
-            missing,
-            secondary_target,
-            primary_target,
-            alpha=alpha,
-            scale=self.config.loss_scale,
-        )
-        if self.d_forward is not None:
-            adversarial = generator_adversarial_loss(self.d_forward(completion.detail))
-            loss_g = joint_loss(loss_com, adversarial, self.config.adversarial_weight)
-            losses["adv_g"] = float(adversarial.detach())
-        else:
-            loss_g = loss_com
-        loss_g.backward()
-        self.optimizer_g.step()
-        losses["loss_g"] = float(loss_g.detach())
-        losses.update({k: float(v) for k, v in parts.items()})
-        return losses
+    def __len__(self) -> int:
+        return max(0, math.ceil(len(self.sampler) / self.batch_size) - self.skip)
 
 
 class Trainer:
@@ -407,23 +239,56 @@ class Trainer:
         self.best_metric = math.inf
         self.best_epoch: int | None = None
         self.history: list[dict[str, Any]] = []
+        self.batches = EpochBatches(self.sampler, config.batch_size)
+        self.save_schedule = SaveSchedule.parse(config.save_every)
+        self._loader: DataLoader | None = None
+        self._val_batches: list[dict[str, Any]] | None = None
+        self._writer: CheckpointWriter | None = None
+        self._last_saved = time.monotonic()
+        self._epochs_since_save = 0
+        self._last_plot = -math.inf
+        self._epoch_started = time.perf_counter()
         if state is not None:
             self._load_state(state)
 
     # -- data --------------------------------------------------------------------------
 
-    def _train_loader(self, skip: int) -> DataLoader:
-        batches = BatchSampler(self.sampler, self.config.batch_size, drop_last=False)
-        workers = self.config.workers
-        return DataLoader(
-            self.train_set,
-            batch_sampler=SkipBatches(batches, skip),
-            num_workers=workers,
-            collate_fn=self.collate,
-            worker_init_fn=_ignore_sigint if workers else None,
-            multiprocessing_context=_worker_context() if workers else None,
-            pin_memory=self.device.type == "cuda",
-        )
+    def _train_loader(self) -> DataLoader:
+        """The training loader, made once: its workers live for the whole run."""
+        if self._loader is None:
+            workers = self.config.workers
+            self._loader = DataLoader(
+                self.train_set,
+                batch_sampler=self.batches,
+                num_workers=workers,
+                collate_fn=self.collate,
+                worker_init_fn=ignore_stop_signals if workers else None,
+                multiprocessing_context=start_helpers() if workers else None,
+                persistent_workers=workers > 0,
+                pin_memory=self.device.type == "cuda",
+            )
+        return self._loader
+
+    def _close_loader(self) -> None:
+        """Stop the data-loader workers."""
+        loader, self._loader = self._loader, None
+        iterator = getattr(loader, "_iterator", None)
+        if iterator is not None and hasattr(iterator, "_shutdown_workers"):
+            iterator._shutdown_workers()
+
+    def _validation_batches(self) -> list[dict[str, Any]]:
+        """This rank's validation batches, built once (the test protocol is deterministic)."""
+        if self._val_batches is None:
+            ctx = self.context
+            shard = Subset(self.val_set, range(ctx.rank, len(self.val_set), ctx.world_size))
+            loader = DataLoader(
+                shard,
+                batch_size=self.config.batch_size,
+                num_workers=0,
+                collate_fn=CompletionCollate(self.collate.multi_resolution, centre_targets=False),
+            )
+            self._val_batches = list(loader)
+        return self._val_batches
 
     # -- checkpoints ---------------------------------------------------------------------
 
@@ -456,11 +321,24 @@ class Trainer:
         if "cuda" in state["rng"] and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["rng"]["cuda"])
 
-    def _save(self, name: str) -> Path:
-        path = self.out_dir / name
-        if self.context.is_main:
-            save_checkpoint(path, self._state())
-        return path
+    def _save_last(self) -> None:
+        """Queue ``last.pt`` (rank 0): a snapshot now, written on the writer's thread."""
+        self._last_saved = time.monotonic()
+        self._epochs_since_save = 0
+        if self.context.is_main and self._writer is not None:
+            self._writer.submit(self.out_dir / LAST, cpu_snapshot(self._state()))
+
+    def _best_state(self, row: dict[str, Any]) -> dict[str, Any]:
+        """What ``best.pt`` holds: what inference needs, no optimiser states."""
+        return cpu_snapshot(
+            {
+                "config": self.config.to_dict(),
+                "model": self.generator.state_dict(),
+                "epoch": self.epoch,
+                "best_metric": self.best_metric,
+                "metrics": dict(row),
+            }
+        )
 
     # -- validation ----------------------------------------------------------------------
 
@@ -473,18 +351,12 @@ class Trainer:
         from pfnet.metrics import sample_metrics, summarize
 
         ctx = self.context
-        shard = Subset(self.val_set, range(ctx.rank, len(self.val_set), ctx.world_size))
-        loader = DataLoader(
-            shard,
-            batch_size=self.config.batch_size,
-            num_workers=0,
-            collate_fn=CompletionCollate(self.collate.multi_resolution, centre_targets=False),
-        )
         self.generator.eval()
         rows: list[tuple[int, str, dict[str, float]]] = []
-        for batch in loader:
+        for batch in self._validation_batches():
             partial = batch["partial"].to(self.device)
-            detail = self.generator(partial, batch.get("scale_indices")).detail
+            with self.step.autocast():
+                detail = self.generator(partial, batch.get("scale_indices")).detail
             metrics = sample_metrics(detail.float().cpu().numpy(), batch["missing"].numpy())
             for j, index in enumerate(batch["index"].tolist()):
                 values = {k: float(v[j]) for k, v in metrics.items()}
@@ -508,16 +380,34 @@ class Trainer:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             with atomic_path(self.out_dir / "config.json") as tmp:
                 tmp.write_text(json.dumps(c.to_dict(), indent=2) + "\n")
-        if not self.history:
-            # Epoch 0: the untrained model, the reference the curves start from.
-            self.history.append({"epoch": 0, **self.validate()})
         interrupted = False
-        with _StopRequest().installed() as stop:
-            while self.epoch < c.epochs and not interrupted:
-                interrupted = self._run_epoch(stop, progress)
-        if ctx.is_main:
-            _write_log(self.out_dir / LOG, self.history)
-            _plot_curves(self.out_dir / CURVES, self.history)
+        with StopRequest().installed() as stop, CheckpointWriter() as writer:
+            self._writer = writer
+            try:
+                if not self.history:
+                    # Epoch 0: the untrained model, the reference the curves start from.
+                    self.history.append({"epoch": 0, **self.validate()})
+                self._epoch_started = time.perf_counter()
+                while self.epoch < c.epochs and not interrupted:
+                    interrupted = self._run_epoch(stop, progress)
+                    if not interrupted and self.epoch < c.epochs:
+                        # A stop requested during validation or bookkeeping: the epoch is
+                        # complete; save it and end.
+                        interrupted = distributed.any_rank(stop.requested, ctx)
+                self._save_last()
+                if ctx.is_main:
+                    write_log(self.out_dir / LOG, self.history)
+                    plot_curves(self.out_dir / CURVES, self.history)
+                writer.flush()
+                if interrupted and ctx.is_main:
+                    print(
+                        f"pfnet train: saved {self.out_dir / LAST} at epoch {self.epoch + 1}, "
+                        f"batch {self.batches_done}; continue with --resume",
+                        file=sys.stderr,
+                    )
+            finally:
+                self._close_loader()
+                self._writer = None
         return {
             "epochs": self.epoch,
             "interrupted": interrupted,
@@ -530,18 +420,19 @@ class Trainer:
             "best": str(self.out_dir / BEST),
             "world_size": ctx.world_size,
             "final": self.history[-1],
+            "checkpoint_write_s": round(writer.seconds_writing, 3),
         }
 
-    def _run_epoch(self, stop: _StopRequest, progress: bool) -> bool:
+    def _run_epoch(self, stop: StopRequest, progress: bool) -> bool:
         """Train one epoch (or its rest); returns True if it stopped on request."""
         c, ctx = self.config, self.context
         epoch = self.epoch
         alpha = alpha_for_epoch(epoch, c.alpha_schedule)
         self.train_set.set_epoch(epoch)
-        self.sampler.set_epoch(epoch)
-        loader = self._train_loader(self.batches_done)
-        started = time.perf_counter()
+        self.batches.set_epoch(epoch, skip=self.batches_done)
+        loader = self._train_loader()
         total = len(loader) + self.batches_done
+        train_s = 0.0
         bar = tqdm(
             total=total,
             initial=self.batches_done,
@@ -552,7 +443,9 @@ class Trainer:
         )
         with bar:
             for batch in loader:
-                losses = self.step(batch, alpha)
+                started = time.perf_counter()
+                losses = self.step(batch, alpha)  # float() of the losses waits for the GPU
+                train_s += time.perf_counter() - started
                 size = len(batch["index"])
                 for key, value in losses.items():
                     self.epoch_sums[key] = self.epoch_sums.get(key, 0.0) + value * size
@@ -565,36 +458,45 @@ class Trainer:
                 )
                 bar.update()
                 if distributed.any_rank(stop.requested, ctx):
-                    path = self._save(LAST)
-                    if ctx.is_main:
-                        print(
-                            f"pfnet train: saved {path} at epoch {epoch + 1}, batch "
-                            f"{self.batches_done}; continue with --resume",
-                            file=sys.stderr,
-                        )
                     return True
+                since = time.monotonic() - self._last_saved
+                if self.save_schedule.due(since, self._epochs_since_save, at_epoch_end=False):
+                    self._save_last()
 
         row = {"epoch": epoch + 1, "lr": self.step.lr, "alpha": alpha}
         row.update(self._epoch_means())
         self.step.end_epoch()
+        started = time.perf_counter()
         row.update(self.validate())
-        row["time_s"] = round(time.perf_counter() - started, 3)
+        val_s = time.perf_counter() - started
+        now = time.perf_counter()
+        # time_s: wall time since the previous epoch ended (data loading, logging and
+        # checkpoint hand-offs included); compute_s: the training and validation steps.
+        row["time_s"] = round(now - self._epoch_started, 3)
+        row["compute_s"] = round(train_s + val_s, 3)
+        row["train_s"] = round(train_s, 3)
+        self._epoch_started = now
         self.history.append(row)
         self.epoch += 1
         self.batches_done = 0
         self.epoch_sums = {}
+        self._epochs_since_save += 1
         # Without validation shapes, best.pt follows the training Chamfer loss.
         metric = row.get(VAL_METRIC, row["cd_detail"])
         improved = metric < self.best_metric
         if improved:
             self.best_metric = metric
             self.best_epoch = epoch + 1
-        self._save(LAST)
-        if improved:
-            self._save(BEST)
+            if ctx.is_main and self._writer is not None:
+                self._writer.submit(self.out_dir / BEST, self._best_state(row))
+        since = time.monotonic() - self._last_saved
+        if self.save_schedule.due(since, self._epochs_since_save, at_epoch_end=True):
+            self._save_last()
         if ctx.is_main:
-            _write_log(self.out_dir / LOG, self.history)
-            _plot_curves(self.out_dir / CURVES, self.history)
+            write_log(self.out_dir / LOG, self.history)
+            if time.monotonic() - self._last_plot >= CURVES_EVERY_S:
+                plot_curves(self.out_dir / CURVES, self.history)
+                self._last_plot = time.monotonic()
             shown = ", ".join(
                 f"{k} {row[k]:.4g}"
                 for k in ("loss_g", "loss_d", "cd_detail", VAL_METRIC)
@@ -604,8 +506,7 @@ class Trainer:
                 f"epoch {epoch + 1}/{c.epochs}: {shown}{' (best)' if improved else ''}",
                 file=sys.stderr,
             )
-        # A stop requested during validation: the epoch is complete and saved.
-        return distributed.any_rank(stop.requested, ctx) and self.epoch < c.epochs
+        return False
 
     def _epoch_means(self) -> dict[str, float]:
         """Mean training losses of the epoch over all processes."""
@@ -637,44 +538,3 @@ def _resumed_config(config: TrainConfig, state: dict[str, Any], path: Path) -> T
                 f"got {requested[key]!r}"
             )
     return stored.replace(**{k: requested[k] for k in RESUMABLE_FIELDS})
-
-
-def _write_log(path: Path, history: list[dict[str, Any]]) -> None:
-    """Rewrite the per-epoch JSON-lines log."""
-    with atomic_path(path) as tmp:
-        tmp.write_text("".join(json.dumps(row) + "\n" for row in history))
-
-
-def _plot_curves(path: Path, history: list[dict[str, Any]]) -> None:
-    """Plot training losses and validation Chamfer distances against the epoch."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib import pyplot as plt
-    from matplotlib.ticker import MaxNLocator
-
-    fig, (ax_loss, ax_val) = plt.subplots(1, 2, figsize=(10, 4))
-    for key in ("loss_g", "cd_detail", "cd_secondary", "cd_primary", "loss_d", "adv_g"):
-        points = [(r["epoch"], r[key]) for r in history if key in r]
-        if points:
-            ax_loss.plot(*zip(*points, strict=True), marker=".", label=key)
-    ax_loss.set(xlabel="epoch", ylabel="training loss", title="Training losses")
-    for key, label in (
-        ("val_cd_l2", "CD-L2 (Pred→GT + GT→Pred)"),
-        ("val_pred_to_gt", "Pred→GT"),
-        ("val_gt_to_pred", "GT→Pred"),
-    ):
-        points = [(r["epoch"], r[key]) for r in history if key in r]
-        if points:
-            ax_val.plot(*zip(*points, strict=True), marker=".", label=label)
-    ax_val.set(xlabel="epoch", ylabel="×1000, missing region", title="Validation (test protocol)")
-    for ax in (ax_loss, ax_val):
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-        if ax.lines:
-            ax.set_yscale("log")
-            ax.legend(fontsize="small")
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)

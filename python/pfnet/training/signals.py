@@ -1,0 +1,92 @@
+"""Safe stopping: Ctrl-C / SIGTERM end a run with a saved state, never with a traceback.
+
+A terminal's Ctrl-C sends SIGINT to the whole process group: the training process, its
+data-loader workers, the fork server that starts them and multiprocessing's resource
+tracker. Only the training process may act on it (it finishes the batch, saves ``last.pt``
+and exits with 130); a helper that died of it would break the next batch fetch (the old
+``BrokenPipeError`` of a fork server killed while it imported torch). The helpers are
+therefore started with SIGINT and SIGTERM *ignored*: an ignored disposition survives fork
+and exec (a blocked mask does not survive multiprocessing's exec), so the fork server and
+every worker it forks ignore both from their first instruction. The training process
+ignores them only for the milliseconds it takes to spawn the fork server.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import multiprocessing.context
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def start_helpers() -> multiprocessing.context.BaseContext:
+    """The multiprocessing context for data-loader workers, its helpers started shielded.
+
+    Workers come from a fork server that has imported pfnet but run nothing: a plain
+    ``fork`` of a process that runs CUDA or several threads copies their state without the
+    threads, and the fork server's forks are cheap. The fork server and the resource
+    tracker are spawned here, with SIGINT and SIGTERM ignored (see the module docstring).
+    """
+    from multiprocessing import forkserver
+
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["pfnet.training.loop"])
+    if threading.current_thread() is threading.main_thread():
+        previous = {signum: signal.signal(signum, signal.SIG_IGN) for signum in STOP_SIGNALS}
+        try:
+            forkserver.ensure_running()
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+    return context
+
+
+def ignore_stop_signals(_worker_id: int) -> None:
+    """``worker_init_fn``: a worker leaves stopping to the training process.
+
+    Already so when the fork server was started by :func:`start_helpers`; this covers a fork
+    server that someone else started first.
+    """
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+
+
+class StopRequest:
+    """SIGINT/SIGTERM handler: the first signal asks the run to stop at the next safe point.
+
+    A second SIGINT raises ``KeyboardInterrupt`` (abort without waiting); checkpoint files
+    are replaced atomically, so even then the previous ``last.pt`` stays intact.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: dict[int, Any] = {}
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        if self.requested and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.requested = True
+        print(
+            "\npfnet train: stopping at the next safe point and saving (Ctrl-C again to abort)",
+            file=sys.stderr,
+        )
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[StopRequest]:
+        """Install the handler for the duration of the block (main thread only)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield self
+            return
+        for signum in STOP_SIGNALS:
+            self._previous[signum] = signal.signal(signum, self._handle)
+        try:
+            yield self
+        finally:
+            for signum, handler in self._previous.items():
+                signal.signal(signum, handler)

@@ -1,0 +1,149 @@
+"""Stopping a training run is always safe: Ctrl-C at any moment saves a loadable ``last.pt``
+(or leaves the previous one intact), exits with 130 without a traceback, and ``--resume``
+continues to the same weights as an uninterrupted run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import pfnet.checkpoint  # noqa: E402
+from pfnet.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
+from pfnet.training import preset_config, train  # noqa: E402
+from pfnet.training.loop import Trainer  # noqa: E402
+from pfnet.training.step import TrainingStep  # noqa: E402
+
+# 24 training shapes in batches of 6: 4 steps an epoch.
+CONFIG = preset_config("small").replace(epochs=2, batch_size=6, width=0.125, save_every="1")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = tmp_path_factory.mktemp("whole") / "run"
+    train(CONFIG, tiny_dataset, run, device="cpu", progress=False)
+    return run
+
+
+def _sigint_on_call(monkeypatch: pytest.MonkeyPatch, owner: object, name: str, call: int) -> None:
+    """Raise a real SIGINT at the start of the ``call``-th call of ``owner.name``."""
+    original = getattr(owner, name)
+    calls: list[int] = []
+
+    def wrapper(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            signal.raise_signal(signal.SIGINT)
+            time.sleep(0.05)  # let the handler run while the call is under way
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, wrapper)
+
+
+MOMENTS = {
+    # mid-batch: during the 6th training step (epoch 2, batch 2)
+    "mid-batch": (TrainingStep, "__call__", 6),
+    # at an epoch boundary: between epoch 1's last batch and its validation
+    "epoch-boundary": (TrainingStep, "end_epoch", 1),
+    # during validation of epoch 1 (call 1 is the untrained model's epoch 0)
+    "validation": (Trainer, "validate", 2),
+    # during a checkpoint write (the first one: best.pt after epoch 1, on the writer thread)
+    "checkpoint-write": (pfnet.checkpoint, "save_checkpoint", 1),
+}
+
+
+@pytest.mark.parametrize("moment", list(MOMENTS))
+def test_ctrl_c_at_any_moment_saves_and_resumes_exactly(
+    moment: str,
+    tiny_dataset: Path,
+    uninterrupted: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    run = tmp_path / "run"
+    with monkeypatch.context() as patch:
+        _sigint_on_call(patch, *MOMENTS[moment])
+        summary = train(CONFIG, tiny_dataset, run, device="cpu", progress=False)
+    assert summary["interrupted"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    state = read_checkpoint(run / "last.pt")
+    model, _ = load_checkpoint(run / "last.pt")
+    assert (state["epoch"], state["batches_done"]) == (summary["epochs"], summary["batches_done"])
+    assert not [p for p in run.iterdir() if p.name.startswith(".")]  # no temporary files
+
+    resumed = train(CONFIG, tiny_dataset, run, device="cpu", progress=False, resume=True)
+    assert not resumed["interrupted"] and resumed["epochs"] == 2
+    a, b = read_checkpoint(uninterrupted / "last.pt"), read_checkpoint(run / "last.pt")
+    for key in ("model", "discriminator"):
+        for name, tensor in a[key].items():
+            assert torch.equal(tensor, b[key][name]), f"{moment}: {key}.{name}"
+
+
+def _has_fork_server(pid: int) -> bool:
+    """Whether process ``pid`` has started multiprocessing's fork server."""
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    for child in path.read_text().split() if path.exists() else []:
+        try:
+            if b"forkserver" in Path(f"/proc/{child}/cmdline").read_bytes():
+                return True
+        except OSError:  # gone meanwhile
+            continue
+    return False
+
+
+def _start_run(tiny_dataset: Path, run: Path, *extra: str) -> subprocess.Popen[str]:
+    command = [sys.executable, "-m", "pfnet.cli", "train", "--data", str(tiny_dataset)]
+    command += ["--out", str(run), "--device", "cpu", *extra]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # A session of its own: killpg reaches the run and all its helpers, as a terminal would.
+    return subprocess.Popen(
+        command, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+
+
+def _wait_for(condition, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out")
+        time.sleep(0.02)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("when", ["workers-starting", "training"])
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_to_the_process_group_exits_130_without_traceback(
+    when: str, signum: int, tiny_dataset: Path, tmp_path: Path
+) -> None:
+    run = tmp_path / "run"
+    options = ["--preset", "small", "--width", "0.125", "--batch-size", "4", "--epochs", "50"]
+    process = _start_run(tiny_dataset, run, *options, "--workers", "2")
+    try:
+        if when == "workers-starting":
+            # The fork server appears and spends seconds importing torch: the old moment of
+            # a BrokenPipeError.
+            _wait_for(lambda: process.poll() is not None or _has_fork_server(process.pid))
+        else:
+            _wait_for(lambda: process.poll() is not None or (run / "log.jsonl").exists())
+            _wait_for(lambda: len((run / "log.jsonl").read_text().splitlines()) >= 2)
+        os.killpg(process.pid, signum)
+        _, stderr = process.communicate(timeout=180)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 130, stderr[-3000:]
+    assert "Traceback" not in stderr and "Error" not in stderr, stderr[-3000:]
+    assert "continue with --resume" in stderr
+    model, config = load_checkpoint(run / "last.pt")
+    assert config.workers == 2
+    resumed = _start_run(tiny_dataset, run, "--resume", "--epochs", "2", "--workers", "1")
+    _, stderr = resumed.communicate(timeout=180)
+    assert resumed.returncode == 0, stderr[-3000:]
