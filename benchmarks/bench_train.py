@@ -1,9 +1,18 @@
-"""Training benchmarks: one PF-Net step (paper preset) and the Chamfer loss vs ``torch.cdist``.
+"""Training benchmarks: one PF-Net step (paper preset), the Chamfer loss vs ``torch.cdist``,
+and whole epochs: where an epoch's wall time goes.
 
 Run as a pytest-benchmark suite (``python -m pytest benchmarks/bench_train.py
---benchmark-enable``) or as a script printing a Markdown table::
+--benchmark-enable``) or as a script printing Markdown tables::
 
     python benchmarks/bench_train.py [--device cpu|cuda] [--steps 3]
+    python benchmarks/bench_train.py --epochs-only --data data/sh3d [--epochs 6]
+
+The epoch table trains real runs (``pfnet train``'s loop) on a prepared data set: the small
+preset (both presets on CUDA, fp32 and bf16). The marginal wall time of an epoch is
+``(T(1 + K epochs) - T(1 epoch)) / K`` measured from outside, after a warm-up run (so it holds
+start-up apart and counts everything else: data loading, validation, logging, checkpoints,
+plots); the compute time is the logged ``compute_s`` (training and validation steps) of
+epochs 2 and later.
 
 Peak memory of a Chamfer forward + backward is measured in a fresh subprocess per method: on
 the CPU as the growth of the resident set's high-water mark (``VmHWM``, reset through
@@ -14,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -27,7 +37,8 @@ torch = pytest.importorskip("torch") if "pytest" in sys.modules else __import__(
 from pfnet.losses import chamfer_distance  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 from pfnet.training.distributed import DistContext  # noqa: E402
-from pfnet.training.loop import CompletionCollate, TrainingStep  # noqa: E402
+from pfnet.training.loop import CompletionCollate  # noqa: E402
+from pfnet.training.step import TrainingStep  # noqa: E402
 
 CHAMFER_SIZES = [(36, 512, 512), (36, 2048, 2048)]  # (B, P, G): the loss's size; a full cloud
 
@@ -181,13 +192,54 @@ def test_pfnet_paper_train_step(benchmark) -> None:
     benchmark.pedantic(step, args=(batch, 0.01), rounds=2, warmup_rounds=1)
 
 
+def time_epochs(
+    data: str, preset: str, device: str, epochs: int = 5, precision: str = "fp32", **changes
+) -> dict[str, float]:
+    """Where the wall time of a run's epochs goes (see the module docstring)."""
+    import tempfile
+
+    from pfnet.training import train
+
+    config = preset_config(preset).replace(precision=precision, **changes)
+    with tempfile.TemporaryDirectory() as tmp:
+        # A throwaway epoch first: the first run in a process pays one-time costs (imports,
+        # thread pools, CUDA context) that would shrink the marginal estimate.
+        train(config.replace(epochs=1), data, f"{tmp}/warm", device=device, progress=False)
+        started = time.perf_counter()
+        train(config.replace(epochs=1), data, f"{tmp}/one", device=device, progress=False)
+        one = time.perf_counter() - started
+        started = time.perf_counter()
+        summary = train(
+            config.replace(epochs=1 + epochs), data, f"{tmp}/many", device=device, progress=False
+        )
+        many = time.perf_counter() - started
+        rows = [json.loads(line) for line in open(f"{tmp}/many/log.jsonl").read().splitlines()][2:]
+        steps = math.ceil(len(np.load(f"{data}/train.npz")["name"]) / config.batch_size)
+    compute = statistics.mean(r["compute_s"] for r in rows)
+    marginal = (many - one) / epochs
+    return {
+        "epoch_wall_s": marginal,
+        "epoch_compute_s": compute,
+        "overhead": marginal / compute,
+        "step_s": statistics.mean(r["train_s"] for r in rows) / steps,
+        "checkpoint_write_s": summary["checkpoint_write_s"],
+        "startup_s": one - marginal,
+    }
+
+
 def main(argv: list[str] | None = None) -> None:
     """Print the benchmark table (Markdown)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     parser.add_argument("--steps", type=int, default=3, help="timed training steps")
     parser.add_argument("--skip-train", action="store_true", help="only the Chamfer table")
+    parser.add_argument("--data", help="a prepared data set: also time whole epochs on it")
+    parser.add_argument("--epochs", type=int, default=5, help="epochs timed after the first")
+    parser.add_argument("--epochs-only", action="store_true", help="only the epoch table")
     args = parser.parse_args(argv)
+    if args.epochs_only:
+        print_epoch_table(args.data, args.device, args.epochs)
+        return
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {args.device}")
     print("\n| Chamfer fwd+bwd (B×P×G) | method | time | peak extra memory |")
     print("|---|---|---|---|")
@@ -201,6 +253,29 @@ def main(argv: list[str] | None = None) -> None:
         seconds = time_train_step(args.device, args.steps)
         print(f"\nPF-Net paper preset, batch 36, D + G step on {args.device}: {seconds:.2f} s/step")
         print(f"collate of a batch of 36 (Rust IFPS, CPU): {time_collate() * 1000:.1f} ms")
+    if args.data:
+        print_epoch_table(args.data, args.device, args.epochs)
+
+
+def print_epoch_table(data: str | None, device: str, epochs: int) -> None:
+    """The epoch table: small preset (and, on CUDA, the paper preset) in each precision."""
+    if data is None:
+        raise SystemExit("--data DIR (a data set made by pfnet prepare) is needed for epochs")
+    runs = [("small", "fp32")]
+    if device == "cuda":
+        runs = [(p, q) for p in ("small", "paper") for q in ("fp32", "bf16")]
+    print(f"\n| {data}, {device} | step | epoch compute | epoch wall | wall ÷ compute "
+          "| checkpoint writes (background) | start-up |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|")
+    for preset, precision in runs:
+        workers = 0 if device == "cpu" else 4
+        r = time_epochs(data, preset, device, epochs, precision, workers=workers)
+        print(
+            f"| {preset}, {precision} | {r['step_s'] * 1000:.0f} ms | {r['epoch_compute_s']:.2f} s"
+            f" | {r['epoch_wall_s']:.2f} s | {r['overhead']:.2f} | "
+            f"{r['checkpoint_write_s']:.2f} s in all | {r['startup_s']:.1f} s |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
