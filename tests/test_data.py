@@ -186,6 +186,9 @@ def test_cloud_set_helpers() -> None:
         ({"format": "obj"}, "format must be auto or one of meshes, shapenet-part"),
         ({"categories": "chair,boat"}, "categories: boat not in the source; available: cabinet"),
         ({"categories": ""}, "categories is empty"),
+        ({"pool": 128}, r"pool must be an integer above points \(128\)"),
+        ({"pool": 2**21}, "and at most 1048576"),
+        ({"pool": 300.5}, "pool must be an integer"),
     ],
 )
 def test_prepare_argument_errors(tmp_path: Path, options: dict, message: str) -> None:
@@ -315,3 +318,34 @@ def test_npz_members_have_a_fixed_timestamp(tiny_dataset: Path) -> None:
     with zipfile.ZipFile(tiny_dataset / "train.npz") as archive:
         assert {info.date_time for info in archive.infolist()} == {(1980, 1, 1, 0, 0, 0)}
         assert sorted(archive.namelist()) == ["category.npy", "name.npy", "points.npy"]
+
+
+def test_a_pool_keeps_the_clouds_and_adds_points_of_the_same_surface(tmp_path: Path) -> None:
+    plain = _procedural(tmp_path / "plain")
+    pooled = _procedural(tmp_path / "pooled", pool=512)
+    assert read_manifest(pooled)["pool"] == 512 and "pool" not in read_manifest(plain)
+    for split in ("train", "val", "test"):
+        a, b = load_split(plain, split), load_split(pooled, split)
+        assert a.extra is None and b.extra is not None
+        assert np.array_equal(a.points, b.points)  # the clouds are bit-identical
+        assert b.extra.shape == (len(b), 512 - 128, 3) and b.pool_size == 512
+        # The same normalisation: the extra points lie on the same (unit-ball) shape.
+        if len(b):
+            assert np.abs(b.extra).max() < 1.05
+            assert len(b.subset([0]).extra) == 1
+    # Byte-identical again with the same seed.
+    again = _procedural(tmp_path / "again", pool=512)
+    assert (again / "train.npz").read_bytes() == (pooled / "train.npz").read_bytes()
+
+
+def test_a_pool_of_a_point_cloud_continues_its_ifps_order() -> None:
+    points = np.random.default_rng(0).normal(size=(700, 3))
+    cloud = resample_points(points, 256, shape_rng(0, "k"))
+    pool = resample_points(points, 256, shape_rng(0, "k"), pool=600)
+    assert np.array_equal(pool[:256], cloud) and pool.shape == (600, 3)
+    assert len(np.unique(pool, axis=0)) == 600  # IFPS of the cloud's own points, no copies
+    more = resample_points(points, 256, shape_rng(0, "k"), pool=1000)
+    assert np.array_equal(more[:600], pool) and more.shape == (1000, 3)  # then copies
+    few = points[:100]
+    small = resample_points(few, 256, shape_rng(0, "k"))
+    assert np.array_equal(resample_points(few, 256, shape_rng(0, "k"), pool=400)[:256], small)

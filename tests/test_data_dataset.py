@@ -105,3 +105,28 @@ def test_dataset_errors(tiny_dataset: Path, tmp_path: Path) -> None:
         dataset[8]
     assert dataset[-1]["index"] == 7
     assert type(dataset[np.int64(2)]["index"]) is int
+
+
+def test_fresh_points_draw_a_new_cloud_from_the_pool_each_epoch(tmp_path: Path) -> None:
+    from pfnet.data import prepare_dataset
+
+    data = tmp_path / "pooled"
+    prepare_dataset(
+        None, data, format="procedural", points=128, pool=512, count=3, workers=1, progress=False
+    )
+    clouds = load_split(data, "train")
+    fresh = CompletionDataset(data, "train", crop="viewpoint", seed=3, fresh_points=True)
+    fixed = CompletionDataset(data, "train", crop="viewpoint", seed=3)
+    assert fresh.fresh_points and not fixed.fresh_points
+    pool = np.concatenate([clouds.points[1], clouds.extra[1]])
+    draws = [fresh[(epoch, 1)]["complete"].numpy() for epoch in (0, 1)]
+    assert not np.array_equal(draws[0], draws[1])
+    for draw in draws:
+        assert draw.shape == (128, 3) and len(np.unique(draw, axis=0)) == 128
+        assert (draw[:, None] == pool[None]).all(-1).any(1).all()  # every point from the pool
+    assert np.array_equal(fresh[(1, 1)]["complete"].numpy(), draws[1])  # seeded
+    assert np.array_equal(fixed[(1, 1)]["complete"].numpy(), clouds.points[1])
+    # The test protocol always uses the stored cloud.
+    test = CompletionDataset(data, "train", crop="test", fresh_points=True)
+    assert not test.fresh_points
+    assert np.array_equal(test[1]["complete"].numpy(), clouds.points[1])

@@ -270,3 +270,67 @@ def test_save_every_and_the_files_a_run_writes(tiny_dataset: Path, tmp_path: Pat
     assert summary["checkpoint_write_s"] > 0
     rows = _rows(tmp_path / "run")
     assert all(0 < r["compute_s"] <= r["time_s"] for r in rows[2:])
+
+
+def test_a_run_sized_in_steps_follows_its_fractional_schedule(
+    tiny_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # 24 shapes in batches of 5: 5 steps an epoch; 13 steps = 3 epochs, the last one partial.
+    config = FAST.replace(
+        model="mlp",
+        width=0.125,
+        batch_size=5,
+        steps=13,
+        lr_milestones=(0.5,),
+        lr_gamma=0.1,
+        warmup_steps=2,
+        alpha_fractions=((0.0, 0.01), (0.5, 0.1)),
+    )
+    summary = train(config, tiny_dataset, tmp_path / "run", device="cpu", progress=False)
+    rows = _rows(tmp_path / "run")[1:]
+    assert summary["epochs"] == 3 and [r["step"] for r in rows] == [5, 10, 13]
+    # The lr after each epoch's last step: ×0.1 from step round(0.5 · 13) = 6 on.
+    assert [r["lr"] for r in rows] == pytest.approx([1e-3, 1e-4, 1e-4])
+    assert [r["alpha"] for r in rows] == [0.01, 0.1, 0.1]
+    state = read_checkpoint(tmp_path / "run" / "last.pt")
+    assert state["scheduler_g"]["last_epoch"] == 13
+
+
+def test_the_learning_rate_schedule_per_step() -> None:
+    from pfnet.training.schedule import alpha_at, make_scheduler, schedule_note
+
+    config = FAST.replace(steps=100, lr=1.0, lr_milestones=(0.5, 0.8), lr_gamma=0.5)
+    config = config.replace(warmup_steps=4)
+    optimizer = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=config.lr)
+    scheduler = make_scheduler(optimizer, config)
+    lrs = []
+    for _ in range(100):
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert lrs[:5] == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0])
+    assert lrs[49] == 1.0 and lrs[50] == 0.5 and lrs[79] == 0.5 and lrs[80] == 0.25
+    fractions = config.replace(alpha_fractions=((0.0, 0.01), (0.15, 0.05), (0.4, 0.1)))
+    assert [alpha_at(fractions, 0, s) for s in (0, 14, 15, 39, 40, 99)] == [
+        0.01, 0.01, 0.05, 0.05, 0.1, 0.1,
+    ]  # fmt: skip
+    epochs = preset_config("paper")  # the authors' epochs 30 and 80
+    assert [alpha_at(epochs, e, 10**6) for e in (29, 30, 80)] == [0.01, 0.05, 0.1]
+    # The published small runs: 12 steps an epoch, StepLR every 40 of 200 epochs.
+    note = schedule_note(preset_config("small").replace(epochs=200, lr_step=40), 12)
+    assert note is not None and note.startswith("only 480 of the run's 2400 optimiser steps")
+    assert schedule_note(config.replace(steps=10_000), 12) is None
+    assert schedule_note(preset_config("paper"), 340) is None  # ShapeNet-Part: 13,600 steps
+
+
+def test_schedule_config_errors() -> None:
+    with pytest.raises(ConfigError, match="steps must be an integer >= 1"):
+        FAST.replace(steps=0)
+    with pytest.raises(ConfigError, match="lr_milestones must be increasing fractions"):
+        FAST.replace(lr_milestones=(0.8, 0.5))
+    with pytest.raises(ConfigError, match="lr_milestones must be increasing fractions"):
+        FAST.replace(lr_milestones=(1.5,))
+    with pytest.raises(ConfigError, match="alpha_fractions must be a list of"):
+        FAST.replace(alpha_fractions=((0.1, 0.01),))
+    with pytest.raises(ConfigError, match="warmup_steps must be an integer >= 0"):
+        FAST.replace(warmup_steps=-1)

@@ -50,6 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--count", type=int, help="procedural shapes per category (default 100)")
     parser.add_argument(
+        "--pool",
+        type=int,
+        metavar="N",
+        help="also store N points per shape in all (more than --points): the cloud and more "
+        "of the same surface, from which training draws a fresh cloud on every access",
+    )
+    parser.add_argument(
         "--strict", action="store_true", help="fail on any unreadable or degenerate file"
     )
     parser.add_argument(
@@ -67,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         format="procedural" if source is None and args.format == "auto" else args.format,
         points=args.points,
+        pool=args.pool,
         seed=args.seed,
         test_fraction=args.test_fraction,
         val_fraction=args.val_fraction,

@@ -39,6 +39,11 @@ class CompletionDataset(Dataset):
         missing_ratio: Share of points removed, ``m = round(r·N)`` (paper: 0.25).
         crop: One of :data:`CROPS`.
         seed: Seed of the random crops.
+        fresh_points: With a random crop and a split that has a pool of points
+            (``pfnet prepare --pool``): every access draws a new cloud of N points from the
+            shape's pool (without replacement, seeded by ``(seed, epoch, index)``) before the
+            crop, as the authors' loader draws 2048 of the raw points every time. The test
+            protocol always uses the stored cloud.
 
     Each item is a dict: ``partial`` ``(N - m, 3)``, ``missing`` ``(m, 3)``, ``complete``
     ``(N, 3)`` float32 tensors, ``category`` and ``name`` str, ``index`` int.
@@ -52,6 +57,7 @@ class CompletionDataset(Dataset):
         missing_ratio: float = 0.25,
         crop: str = "test",
         seed: int = 0,
+        fresh_points: bool = False,
     ) -> None:
         if crop not in CROPS:
             raise ConfigError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
@@ -65,6 +71,7 @@ class CompletionDataset(Dataset):
         self.n_points = self.clouds.n_points
         self.n_missing = missing_count(self.n_points, missing_ratio)
         self.epoch = 0
+        self.fresh_points = bool(fresh_points) and crop != "test" and self.clouds.extra is not None
         self._viewpoints = test_protocol_viewpoints(len(self.clouds))
 
     def __len__(self) -> int:
@@ -81,11 +88,25 @@ class CompletionDataset(Dataset):
             raise ConfigError(f"epoch must be a non-negative integer, got {epoch!r}")
         self.epoch = epoch
 
-    def crop_seed(self, index: int, epoch: int | None = None) -> int:
-        """The seed of sample ``index``'s random crop at ``epoch`` (default: the current one)."""
+    def crop_seed(self, index: int, epoch: int | None = None, stream: int = 0) -> int:
+        """The seed of sample ``index``'s random crop at ``epoch`` (default: the current one).
+
+        ``stream=1`` gives an independent seed for the draw of its points from the pool.
+        """
         epoch = self.epoch if epoch is None else epoch
-        state = np.random.SeedSequence([self.seed, epoch, index]).generate_state(2, np.uint32)
+        key = [self.seed, epoch, index] + ([stream] if stream else [])
+        state = np.random.SeedSequence(key).generate_state(2, np.uint32)
         return int(state[0]) << 32 | int(state[1])
+
+    def cloud(self, index: int, epoch: int | None = None) -> np.ndarray:
+        """The complete cloud of sample ``index`` at ``epoch``: the stored one, or with
+        ``fresh_points`` a new draw of N points from the shape's pool."""
+        points = self.clouds.points[index]
+        if not self.fresh_points or self.clouds.extra is None:
+            return points
+        pool = np.concatenate([points, self.clouds.extra[index]])
+        rng = np.random.default_rng(self.crop_seed(index, epoch, stream=1))
+        return pool[np.sort(rng.choice(len(pool), self.n_points, replace=False))]
 
     def __getitem__(self, key: int | tuple[int, int]) -> dict:
         """Sample ``key``: an index (at the current epoch) or an ``(epoch, index)`` pair."""
@@ -103,7 +124,7 @@ class CompletionDataset(Dataset):
         index %= len(self)
         from pfnet.geometry import crop_by_viewpoint, random_crop
 
-        complete = self.clouds.points[index]
+        complete = self.cloud(index, epoch)
         if self.crop == "test":
             partial, missing = crop_by_viewpoint(
                 complete, self._viewpoints[index], n_missing=self.n_missing

@@ -58,11 +58,15 @@ class CloudSet:
         points: float32 ``(S, N, 3)`` complete clouds, centred and scaled into the unit ball.
         category: ``(S,)`` str category of each shape.
         name: ``(S,)`` str unique, filesystem-safe name of each shape.
+        extra: float32 ``(S, E, 3)`` more points of each shape's surface, in the same
+            coordinates (``pfnet prepare --pool N`` stores ``E = N - points``), or ``None``.
+            With ``points`` they form the pool that training draws fresh clouds from.
     """
 
     points: np.ndarray
     category: np.ndarray
     name: np.ndarray
+    extra: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         points, category, name = self.points, self.category, self.name
@@ -76,6 +80,17 @@ class CloudSet:
                     f"{label} must be a str array of shape ({points.shape[0]},), "
                     f"got {array.dtype} {array.shape}"
                 )
+        extra = self.extra
+        if extra is not None and (
+            extra.ndim != 3
+            or extra.shape[0] != points.shape[0]
+            or extra.shape[2] != 3
+            or extra.dtype != np.float32
+        ):
+            raise DataError(
+                f"extra must be a float32 ({points.shape[0]}, E, 3) array, "
+                f"got {extra.dtype} {extra.shape}"
+            )
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -90,14 +105,23 @@ class CloudSet:
         """The distinct categories, sorted."""
         return sorted({str(c) for c in self.category})
 
+    @property
+    def pool_size(self) -> int:
+        """Points per shape in the pool (``N`` when there are no extra points)."""
+        return self.n_points + (0 if self.extra is None else int(self.extra.shape[1]))
+
     def subset(self, index: np.ndarray | list[int] | slice) -> CloudSet:
         """The shapes at ``index`` (an index array, a boolean mask or a slice), in that order."""
-        return CloudSet(self.points[index], self.category[index], self.name[index])
+        extra = None if self.extra is None else self.extra[index]
+        return CloudSet(self.points[index], self.category[index], self.name[index], extra)
 
     @classmethod
-    def empty(cls, n_points: int) -> CloudSet:
-        """A split without shapes, ``(0, n_points, 3)``."""
-        return cls(np.zeros((0, n_points, 3), np.float32), np.zeros(0, "<U1"), np.zeros(0, "<U1"))
+    def empty(cls, n_points: int, pool: int = 0) -> CloudSet:
+        """A split without shapes, ``(0, n_points, 3)`` (and ``(0, pool - n_points, 3)``)."""
+        extra = np.zeros((0, pool - n_points, 3), np.float32) if pool > n_points else None
+        return cls(
+            np.zeros((0, n_points, 3), np.float32), np.zeros(0, "<U1"), np.zeros(0, "<U1"), extra
+        )
 
 
 def read_manifest(root: str | os.PathLike[str]) -> dict:
@@ -158,6 +182,8 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
             if missing:
                 raise DataError(f"{path}: missing arrays {', '.join(sorted(missing))}")
             arrays = {key: data[key] for key in ("points", "category", "name")}
+            if "extra" in data.files:
+                arrays["extra"] = data["extra"]
     except DataError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile) as err:
@@ -221,14 +247,14 @@ def write_dataset(
         tmp.mkdir()
         for split in SPLITS:
             cloud_set = splits[split]
-            _write_npz(
-                tmp / f"{split}.npz",
-                {
-                    "points": cloud_set.points,
-                    "category": cloud_set.category,
-                    "name": cloud_set.name,
-                },
-            )
+            arrays = {
+                "points": cloud_set.points,
+                "category": cloud_set.category,
+                "name": cloud_set.name,
+            }
+            if cloud_set.extra is not None:
+                arrays["extra"] = cloud_set.extra
+            _write_npz(tmp / f"{split}.npz", arrays)
         text = json.dumps(manifest, indent=2, ensure_ascii=False) + "\n"
         (tmp / MANIFEST_NAME).write_text(text, encoding="utf-8")
         if path.exists():

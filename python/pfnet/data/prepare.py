@@ -34,6 +34,7 @@ from pfnet.errors import ConfigError, DataError
 __all__ = ["PrepareReport", "assign_splits", "detect_format", "prepare_dataset", "process_item"]
 
 MIN_POINTS = 16
+MAX_POOL = 1 << 20  # points per shape; 12 MiB a shape in float32
 DEFAULT_PROCEDURAL_COUNT = 100
 # Below this many shapes per worker a process pool costs more than it saves.
 _MIN_ITEMS_PER_WORKER = 8
@@ -160,24 +161,33 @@ def assign_splits(
     return splits
 
 
-def process_item(task: tuple[int, ShapeItem, int, int]) -> tuple[int, np.ndarray | None, str]:
+def process_item(
+    task: tuple[int, ShapeItem, int, int] | tuple[int, ShapeItem, int, int, int],
+) -> tuple[int, np.ndarray | None, str]:
     """Load, sample and normalise one shape (runs in a worker process).
 
     Args:
-        task: ``(index, item, n_points, seed)``.
+        task: ``(index, item, n_points, seed[, pool])``.
 
     Returns:
-        ``(index, points float32 (n_points, 3), "")``, or ``(index, None, reason)`` on failure.
+        ``(index, points float32 (max(n_points, pool), 3), "")`` (the first ``n_points`` are
+        the shape's cloud, the rest its pool of extra points, drawn after it from the same
+        stream and normalised with the cloud's centroid and radius), or
+        ``(index, None, reason)`` on failure.
     """
-    index, item, n_points, seed = task
+    index, item, n_points, seed = task[:4]
+    pool = task[4] if len(task) > 4 else 0
     try:
         geometry = load_item(item, seed)
         rng = shape_rng(seed, item.key)
         if geometry.faces is None:
-            points = resample_points(geometry.vertices, n_points, rng)
+            points = resample_points(geometry.vertices, n_points, rng, pool)
         else:
             points = sample_surface(geometry.vertices, geometry.faces, n_points, rng)
-        return index, normalize(points), ""
+            if pool > n_points:
+                more = sample_surface(geometry.vertices, geometry.faces, pool - n_points, rng)
+                points = np.concatenate([points, more])
+        return index, normalize(points, n_points), ""
     except DataError as err:
         return index, None, str(err).removeprefix(f"{item.path}: ")
     except Exception as err:  # a broken file can make any reader fail in its own way
@@ -318,6 +328,7 @@ def prepare_dataset(
     categories: Sequence[str] | str | None = None,
     workers: int | None = None,
     count: int | None = None,
+    pool: int | None = None,
     strict: bool = False,
     overwrite: bool = False,
     progress: bool | None = None,
@@ -341,6 +352,9 @@ def prepare_dataset(
             everything, including SweetHome3D's unmatched ``other`` models.
         workers: Worker processes (default: the usable CPU cores).
         count: Shapes per category for the procedural format (default 100).
+        pool: Also store this many points per shape in all (``> points``): the shape's
+            cloud followed by more points of the same surface, from which training draws a
+            fresh cloud on every access. The clouds themselves are unchanged by it.
         strict: Fail on the first unreadable or degenerate file instead of skipping it.
         overwrite: Replace an existing, non-empty ``out``.
         progress: Show a progress bar on stderr (default: when stderr is a terminal).
@@ -362,6 +376,11 @@ def prepare_dataset(
     if count is not None and (not _is_integer(count) or count < 1):
         raise ConfigError(f"count must be a positive integer, got {count!r}")
     count = None if count is None else int(count)
+    if pool is not None and (not _is_integer(pool) or pool <= points or pool > MAX_POOL):
+        raise ConfigError(
+            f"pool must be an integer above points ({points}) and at most {MAX_POOL}, got {pool!r}"
+        )
+    pool = 0 if pool is None else int(pool)
     out_path = check_output(out, overwrite)
     fmt = detect_format(source) if format == "auto" else format
     scan = _scan(fmt, source, count, strict)
@@ -376,7 +395,7 @@ def prepare_dataset(
         if scan.has_splits
         else assign_splits(items, seed, test_fraction, val_fraction)
     )
-    tasks = [(index, item, points, seed) for index, item in enumerate(items)]
+    tasks = [(index, item, points, seed, pool) for index, item in enumerate(items)]
     results = _run(tasks, workers or _default_workers(), progress, stop_on_failure=strict)
     skipped = list(scan.skipped)
     kept: dict[str, list[tuple[ShapeItem, np.ndarray]]] = {split: [] for split in SPLITS}
@@ -390,7 +409,7 @@ def prepare_dataset(
             kept[splits[index]].append((item, cloud))
     if not any(kept.values()):
         raise DataError(f"{source}: every shape failed ({skipped[0][0]}: {skipped[0][1]})")
-    cloud_sets = {split: _cloud_set(kept[split], points) for split in SPLITS}
+    cloud_sets = {split: _cloud_set(kept[split], points, pool) for split in SPLITS}
     counts = {
         split: dict(sorted(Counter(cloud_sets[split].category.tolist()).items()))
         for split in SPLITS
@@ -399,6 +418,8 @@ def prepare_dataset(
     manifest = _manifest(
         fmt, source, points, seed, test_fraction, val_fraction, scan, counts, skipped
     )
+    if pool:
+        manifest["pool"] = pool
     manifest["licenses"] = licenses
     if credits:
         manifest["credits"] = credits
@@ -414,14 +435,18 @@ def prepare_dataset(
     )
 
 
-def _cloud_set(shapes: list[tuple[ShapeItem, np.ndarray]], n_points: int) -> CloudSet:
+def _cloud_set(
+    shapes: list[tuple[ShapeItem, np.ndarray]], n_points: int, pool: int = 0
+) -> CloudSet:
     if not shapes:
-        return CloudSet.empty(n_points)
+        return CloudSet.empty(n_points, pool)
     shapes = sorted(shapes, key=lambda s: (s[0].category, s[0].name))
+    clouds = np.stack([cloud for _, cloud in shapes])
     return CloudSet(
-        np.stack([cloud for _, cloud in shapes]),
+        np.ascontiguousarray(clouds[:, :n_points]),
         np.array([item.category for item, _ in shapes], dtype=str),
         np.array([item.name for item, _ in shapes], dtype=str),
+        np.ascontiguousarray(clouds[:, n_points:]) if pool else None,
     )
 
 

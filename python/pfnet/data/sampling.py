@@ -75,20 +75,28 @@ def sample_surface(
     return corners[face, 0] + uv[:, :1] * edge_a[face] + uv[:, 1:] * edge_b[face]
 
 
-def resample_points(points: np.ndarray, n_points: int, rng: np.random.Generator) -> np.ndarray:
-    """Bring a point cloud to exactly ``n_points`` points.
+def resample_points(
+    points: np.ndarray, n_points: int, rng: np.random.Generator, pool: int = 0
+) -> np.ndarray:
+    """Bring a point cloud to exactly ``n_points`` points (and a pool of more, on request).
 
     More points: iterative farthest point sampling (``pfnet.geometry``) from a start index
     drawn with ``rng``. Fewer points: every original point is kept, followed by copies of
     ``n_points - N`` points drawn with ``rng`` (without replacement while ``n_points <= 2N``).
 
+    With ``pool > n_points`` the result has ``pool`` points whose first ``n_points`` are
+    exactly the cloud above: IFPS is greedy, so the IFPS order of a larger sample from the
+    same start begins with the smaller sample; past the cloud's own points, copies of its
+    points drawn with ``rng`` fill the pool.
+
     Args:
         points: ``(N, 3)`` finite coordinates, ``N >= 1``.
         n_points: The wanted number of points.
         rng: The shape's generator.
+        pool: Total points to return, if more than ``n_points``.
 
     Returns:
-        float64 ``(n_points, 3)``.
+        float64 ``(max(n_points, pool), 3)``.
     """
     from pfnet.geometry import farthest_point_sample
 
@@ -100,14 +108,19 @@ def resample_points(points: np.ndarray, n_points: int, rng: np.random.Generator)
         raise DataError("the point cloud has NaN or infinite coordinates")
     if count > n_points:
         start = int(rng.integers(count))
-        return points[farthest_point_sample(points, n_points, start_index=start)]
-    if count == n_points:
-        return points.copy()
-    extra = rng.choice(count, n_points - count, replace=n_points - count > count)
-    return np.concatenate([points, points[extra]])
+        ordered = min(count, max(n_points, pool))
+        cloud = points[farthest_point_sample(points, ordered, start_index=start)]
+    elif count == n_points:
+        cloud = points.copy()
+    else:
+        extra = rng.choice(count, n_points - count, replace=n_points - count > count)
+        cloud = np.concatenate([points, points[extra]])
+    if pool > len(cloud):
+        cloud = np.concatenate([cloud, points[rng.choice(count, pool - len(cloud))]])
+    return cloud
 
 
-def normalize(points: np.ndarray) -> np.ndarray:
+def normalize(points: np.ndarray, n_reference: int | None = None) -> np.ndarray:
     """Centre a cloud at the origin and scale it into the unit ball, as the authors do.
 
     The authors' ``pc_normalize`` subtracts the centroid (the mean of the points) and
@@ -115,16 +128,21 @@ def normalize(points: np.ndarray) -> np.ndarray:
 
     Args:
         points: ``(N, 3)``.
+        n_reference: Take the centroid and radius of the first ``n_reference`` points only
+            and apply them to all (a pool of extra points follows the data set's cloud; its
+            points may lie slightly outside the unit ball).
 
     Returns:
-        float32 ``(N, 3)`` with mean 0 and largest norm 1.
+        float32 ``(N, 3)``; its first ``n_reference`` points have mean 0 and largest norm 1.
 
     Raises:
         DataError: All points coincide (nothing to scale).
     """
     points = np.asarray(points, dtype=np.float64)
-    centred = points - points.mean(axis=0)
-    radius = float(np.sqrt((centred**2).sum(axis=1)).max())
+    reference = points[:n_reference] if n_reference else points
+    centroid = reference.mean(axis=0)
+    centred = points - centroid
+    radius = float(np.sqrt(((reference - centroid) ** 2).sum(axis=1)).max())
     if not (np.isfinite(radius) and radius > 0.0):
         raise DataError("the shape is degenerate: all sampled points coincide")
     return (centred / radius).astype(np.float32)

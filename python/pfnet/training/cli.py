@@ -27,6 +27,8 @@ HELP = "Train PF-Net or a baseline on a prepared dataset (one process, or DDP un
 # Command-line options that override a TrainConfig field of the same name.
 OVERRIDES: dict[str, tuple[type, str]] = {
     "epochs": (int, "number of epochs"),
+    "steps": (int, "size the run in optimiser steps instead (schedules become fractions of it)"),
+    "warmup_steps": (int, "with --steps: linear learning-rate warm-up over this many steps"),
     "batch_size": (int, "clouds per step (per process under torchrun)"),
     "missing_ratio": (float, "fraction of points removed by the crop (default 0.25)"),
     "seed": (int, "seed of initialisation, shuffling and crops (default 0)"),

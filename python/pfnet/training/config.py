@@ -44,9 +44,20 @@ class TrainConfig:
         lr_step: StepLR period in epochs.
         lr_gamma: StepLR factor.
         alpha_schedule: ``((first_epoch, alpha), ...)``: α of Eq. (2) from each epoch on.
+        steps: Size the run in optimiser steps instead of ``epochs`` (``None``: epochs, as
+            the paper). Then the schedules are fractions of the run: ``lr_milestones``,
+            ``warmup_steps`` and ``alpha_fractions`` replace ``lr_step`` and
+            ``alpha_schedule``, and the last epoch may stop part-way.
+        lr_milestones: With ``steps``: fractions of the run at which the learning rate is
+            multiplied by ``lr_gamma``.
+        warmup_steps: With ``steps``: the learning rate rises linearly over this many steps.
+        alpha_fractions: With ``steps``: ``((first_fraction, alpha), ...)``; the authors'
+            epochs 30 and 80 of 200 are 0.15 and 0.4.
         adversarial_weight: λ_adv of Eq. (4); λ_com = 1 - λ_adv. Used by adversarial models.
         loss_scale: Factor on every Chamfer term of the loss (authors: 100·(d1+d2)/2 → 50).
         crop: Training crop: ``viewpoint`` (one of the five), ``sphere`` or ``multi`` region.
+        fresh_points: Draw every training cloud afresh from the data set's pool of points
+            when it has one (``pfnet prepare --pool``), as the authors' loader does.
         seed: Seed of initialisation, shuffling and crops.
         workers: Data-loader worker processes (kept alive for the whole run).
         precision: ``fp32`` (exact, the default) or ``bf16``: the networks run under
@@ -72,9 +83,16 @@ class TrainConfig:
     alpha_schedule: tuple[tuple[int, float], ...] = field(
         default=((0, 0.01), (30, 0.05), (80, 0.1))
     )
+    steps: int | None = None
+    lr_milestones: tuple[float, ...] = (0.5, 0.75)
+    warmup_steps: int = 0
+    alpha_fractions: tuple[tuple[float, float], ...] = field(
+        default=((0.0, 0.01), (0.15, 0.05), (0.4, 0.1))
+    )
     adversarial_weight: float = 0.05
     loss_scale: float = 50.0
     crop: str = "viewpoint"
+    fresh_points: bool = True
     seed: int = 0
     workers: int = 2
     precision: str = "fp32"
@@ -85,12 +103,13 @@ class TrainConfig:
         # Lists (TOML, JSON, checkpoints) become tuples so configs compare and hash.
         if isinstance(self.betas, list):
             object.__setattr__(self, "betas", tuple(self.betas))
-        if isinstance(self.alpha_schedule, list | tuple):
-            object.__setattr__(
-                self,
-                "alpha_schedule",
-                tuple(tuple(x) if isinstance(x, list | tuple) else x for x in self.alpha_schedule),
-            )
+        for name in ("alpha_schedule", "alpha_fractions"):
+            value = getattr(self, name)
+            if isinstance(value, list | tuple):
+                pairs = tuple(tuple(x) if isinstance(x, list | tuple) else x for x in value)
+                object.__setattr__(self, name, pairs)
+        if isinstance(self.lr_milestones, list):
+            object.__setattr__(self, "lr_milestones", tuple(self.lr_milestones))
         _validate(self)
 
     @property
@@ -114,6 +133,8 @@ class TrainConfig:
         out = dataclasses.asdict(self)
         out["betas"] = list(self.betas)
         out["alpha_schedule"] = [list(x) for x in self.alpha_schedule]
+        out["alpha_fractions"] = [list(x) for x in self.alpha_fractions]
+        out["lr_milestones"] = list(self.lr_milestones)
         return out
 
     @classmethod
@@ -229,6 +250,24 @@ def _require(ok: bool, key: str, value: Any, what: str) -> None:
         raise ConfigError(f"{key} must be {what}; got {value!r}")
 
 
+def _is_alpha_schedule(schedule: Any, valid_start: Any) -> bool:
+    """``((start, alpha), ...)`` with valid, increasing starts from 0 and alphas >= 0."""
+    return (
+        isinstance(schedule, tuple)
+        and len(schedule) >= 1
+        and all(
+            isinstance(s, tuple)
+            and len(s) == 2
+            and valid_start(s[0])
+            and _is_number(s[1])
+            and s[1] >= 0
+            for s in schedule
+        )
+        and schedule[0][0] == 0
+        and all(a[0] < b[0] for a, b in zip(schedule[:-1], schedule[1:], strict=True))
+    )
+
+
 def _validate(c: TrainConfig) -> None:
     """Raise :class:`ConfigError` naming the first invalid value of ``c``."""
     _require(c.model in MODEL_NAMES, "model", c.model, f"one of {', '.join(MODEL_NAMES)}")
@@ -275,24 +314,39 @@ def _validate(c: TrainConfig) -> None:
     _require(
         _is_number(c.lr_gamma) and 0 < c.lr_gamma <= 1, "lr_gamma", c.lr_gamma, "a number in (0, 1]"
     )
-    schedule = c.alpha_schedule
     _require(
-        isinstance(schedule, tuple)
-        and len(schedule) >= 1
-        and all(
-            isinstance(s, tuple)
-            and len(s) == 2
-            and _is_int(s[0])
-            and s[0] >= 0
-            and _is_number(s[1])
-            and s[1] >= 0
-            for s in schedule
-        )
-        and schedule[0][0] == 0
-        and all(a[0] < b[0] for a, b in zip(schedule[:-1], schedule[1:], strict=True)),
+        _is_alpha_schedule(c.alpha_schedule, lambda e: _is_int(e) and e >= 0),
         "alpha_schedule",
-        schedule,
+        c.alpha_schedule,
         "a list of [first_epoch, alpha] pairs with integer epochs increasing from 0 "
+        "and alphas >= 0",
+    )
+    _require(
+        c.steps is None or (_is_int(c.steps) and c.steps >= 1),
+        "steps",
+        c.steps,
+        "an integer >= 1 (or unset: the run is sized in epochs)",
+    )
+    milestones = c.lr_milestones
+    _require(
+        isinstance(milestones, tuple)
+        and all(_is_number(m) and 0 < m < 1 for m in milestones)
+        and all(a < b for a, b in zip(milestones[:-1], milestones[1:], strict=True)),
+        "lr_milestones",
+        milestones,
+        "increasing fractions of the run in (0, 1)",
+    )
+    _require(
+        _is_int(c.warmup_steps) and c.warmup_steps >= 0,
+        "warmup_steps",
+        c.warmup_steps,
+        "an integer >= 0",
+    )
+    _require(
+        _is_alpha_schedule(c.alpha_fractions, lambda f: _is_number(f) and 0 <= f < 1),
+        "alpha_fractions",
+        c.alpha_fractions,
+        "a list of [first_fraction, alpha] pairs with fractions increasing from 0 below 1 "
         "and alphas >= 0",
     )
     _require(
@@ -308,6 +362,7 @@ def _validate(c: TrainConfig) -> None:
         "a positive number",
     )
     _require(c.crop in TRAIN_CROPS, "crop", c.crop, f"one of {', '.join(TRAIN_CROPS)}")
+    _require(isinstance(c.fresh_points, bool), "fresh_points", c.fresh_points, "true or false")
     _require(_is_int(c.seed) and c.seed >= 0, "seed", c.seed, "an integer >= 0")
     _require(_is_int(c.workers) and c.workers >= 0, "workers", c.workers, "an integer >= 0")
     _require(c.precision in PRECISIONS, "precision", c.precision, f"one of {', '.join(PRECISIONS)}")

@@ -33,7 +33,6 @@ from pfnet.checkpoint import read_checkpoint
 from pfnet.errors import ConfigError, DataError
 from pfnet.geometry import farthest_point_sample
 from pfnet.io import atomic_path
-from pfnet.losses import alpha_for_epoch
 from pfnet.models.layers import multi_resolution_indices
 from pfnet.models.pfnet import PRIMARY_POINTS, SECONDARY_POINTS
 from pfnet.training import distributed
@@ -41,6 +40,7 @@ from pfnet.training.config import RESUMABLE_FIELDS, SaveSchedule, TrainConfig
 from pfnet.training.distributed import DistContext
 from pfnet.training.runlog import plot_curves, write_log
 from pfnet.training.saving import CheckpointWriter, cpu_snapshot
+from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
 from pfnet.training.signals import StopRequest, ignore_stop_signals, start_helpers
 from pfnet.training.step import TrainingStep
 
@@ -207,6 +207,7 @@ class Trainer:
             missing_ratio=config.missing_ratio,
             crop=config.crop,
             seed=config.seed,
+            fresh_points=config.fresh_points,
         )
         self.val_set = CompletionDataset(
             data_dir, "val", missing_ratio=config.missing_ratio, crop="test", seed=config.seed
@@ -240,6 +241,8 @@ class Trainer:
         self.best_epoch: int | None = None
         self.history: list[dict[str, Any]] = []
         self.batches = EpochBatches(self.sampler, config.batch_size)
+        self.steps_per_epoch = math.ceil(len(self.sampler) / config.batch_size)
+        self.epochs = total_epochs(config, self.steps_per_epoch)
         self.save_schedule = SaveSchedule.parse(config.save_every)
         self._loader: DataLoader | None = None
         self._val_batches: list[dict[str, Any]] | None = None
@@ -250,6 +253,11 @@ class Trainer:
         self._epoch_started = time.perf_counter()
         if state is not None:
             self._load_state(state)
+
+    @property
+    def global_step(self) -> int:
+        """Optimiser steps taken so far in the run."""
+        return self.epoch * self.steps_per_epoch + self.batches_done
 
     # -- data --------------------------------------------------------------------------
 
@@ -380,6 +388,9 @@ class Trainer:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             with atomic_path(self.out_dir / "config.json") as tmp:
                 tmp.write_text(json.dumps(c.to_dict(), indent=2) + "\n")
+            note = schedule_note(c, self.steps_per_epoch)
+            if note and self.epoch == 0 and not self.batches_done:
+                print(f"pfnet train: note: {note}", file=sys.stderr)
         interrupted = False
         with StopRequest().installed() as stop, CheckpointWriter() as writer:
             self._writer = writer
@@ -388,9 +399,9 @@ class Trainer:
                     # Epoch 0: the untrained model, the reference the curves start from.
                     self.history.append({"epoch": 0, **self.validate()})
                 self._epoch_started = time.perf_counter()
-                while self.epoch < c.epochs and not interrupted:
+                while self.epoch < self.epochs and not interrupted:
                     interrupted = self._run_epoch(stop, progress)
-                    if not interrupted and self.epoch < c.epochs:
+                    if not interrupted and self.epoch < self.epochs:
                         # A stop requested during validation or bookkeeping: the epoch is
                         # complete; save it and end.
                         interrupted = distributed.any_rank(stop.requested, ctx)
@@ -427,7 +438,7 @@ class Trainer:
         """Train one epoch (or its rest); returns True if it stopped on request."""
         c, ctx = self.config, self.context
         epoch = self.epoch
-        alpha = alpha_for_epoch(epoch, c.alpha_schedule)
+        alpha = alpha_at(c, epoch, self.global_step)
         self.train_set.set_epoch(epoch)
         self.batches.set_epoch(epoch, skip=self.batches_done)
         loader = self._train_loader()
@@ -436,7 +447,7 @@ class Trainer:
         bar = tqdm(
             total=total,
             initial=self.batches_done,
-            desc=f"epoch {epoch + 1}/{c.epochs}",
+            desc=f"epoch {epoch + 1}/{self.epochs}",
             disable=not progress,
             leave=False,
             dynamic_ncols=True,
@@ -444,7 +455,9 @@ class Trainer:
         with bar:
             for batch in loader:
                 started = time.perf_counter()
+                alpha = alpha_at(c, epoch, self.global_step)
                 losses = self.step(batch, alpha)  # float() of the losses waits for the GPU
+                self.step.end_step()
                 train_s += time.perf_counter() - started
                 size = len(batch["index"])
                 for key, value in losses.items():
@@ -459,11 +472,13 @@ class Trainer:
                 bar.update()
                 if distributed.any_rank(stop.requested, ctx):
                     return True
+                if c.steps is not None and self.global_step >= c.steps:
+                    break  # the run's last, partial epoch
                 since = time.monotonic() - self._last_saved
                 if self.save_schedule.due(since, self._epochs_since_save, at_epoch_end=False):
                     self._save_last()
 
-        row = {"epoch": epoch + 1, "lr": self.step.lr, "alpha": alpha}
+        row = {"epoch": epoch + 1, "step": self.global_step, "lr": self.step.lr, "alpha": alpha}
         row.update(self._epoch_means())
         self.step.end_epoch()
         started = time.perf_counter()
@@ -503,7 +518,7 @@ class Trainer:
                 if k in row
             )
             print(
-                f"epoch {epoch + 1}/{c.epochs}: {shown}{' (best)' if improved else ''}",
+                f"epoch {epoch + 1}/{self.epochs}: {shown}{' (best)' if improved else ''}",
                 file=sys.stderr,
             )
         return False

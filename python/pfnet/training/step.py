@@ -19,6 +19,7 @@ from pfnet.losses import (
 from pfnet.models import Discriminator, build_model
 from pfnet.training.config import TrainConfig
 from pfnet.training.distributed import DistContext
+from pfnet.training.schedule import make_scheduler
 
 
 class TrainingStep:
@@ -60,19 +61,14 @@ class TrainingStep:
             if self.d_forward is not None:
                 self.d_forward = torch.compile(self.d_forward)
         self.optimizer_g = self._adam(self.generator)
-        self.scheduler_g = self._step_lr(self.optimizer_g)
+        self.scheduler_g = make_scheduler(self.optimizer_g, config)
         self.optimizer_d = self._adam(self.discriminator) if self.discriminator else None
-        self.scheduler_d = self._step_lr(self.optimizer_d) if self.optimizer_d else None
+        self.scheduler_d = make_scheduler(self.optimizer_d, config) if self.optimizer_d else None
 
     def _adam(self, module: nn.Module) -> torch.optim.Adam:
         c = self.config
         return torch.optim.Adam(
             module.parameters(), lr=c.lr, betas=c.betas, eps=c.eps, weight_decay=c.weight_decay
-        )
-
-    def _step_lr(self, optimizer: torch.optim.Optimizer) -> torch.optim.lr_scheduler.StepLR:
-        return torch.optim.lr_scheduler.StepLR(
-            optimizer, step_size=self.config.lr_step, gamma=self.config.lr_gamma
         )
 
     @property
@@ -92,7 +88,16 @@ class TrainingStep:
         return contextlib.nullcontext()
 
     def end_epoch(self) -> None:
-        """Advance the learning-rate schedules by one epoch."""
+        """Advance the learning-rate schedules by one epoch (runs sized in epochs)."""
+        if self.config.steps is None:
+            self._advance()
+
+    def end_step(self) -> None:
+        """Advance the learning-rate schedules by one step (runs sized in steps)."""
+        if self.config.steps is not None:
+            self._advance()
+
+    def _advance(self) -> None:
         self.scheduler_g.step()
         if self.scheduler_d is not None:
             self.scheduler_d.step()

@@ -1,0 +1,93 @@
+"""Learning-rate and α schedules, in epochs (the paper's) or in fractions of a run of steps.
+
+The paper's schedule (StepLR every 40 epochs, α steps at epochs 30 and 80) assumes
+ShapeNet-Part's ~340 steps an epoch. On a data set of a few hundred shapes an epoch is a
+dozen steps, and the same schedule leaves the learning rate at 1/5 after 480 steps and at
+1.6e-6 by epoch 200: the curves flatten because the learning rate is gone. A run sized in
+steps (``TrainConfig.steps``) reads its milestones as fractions of the run instead.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from pfnet.losses import alpha_for_epoch
+from pfnet.training.config import TrainConfig
+
+FEW_STEPS_AT_FULL_LR = 2000  # below this, a run is told that its learning rate decays early
+
+
+def make_scheduler(
+    optimizer: torch.optim.Optimizer, config: TrainConfig
+) -> torch.optim.lr_scheduler.LRScheduler:
+    """StepLR stepped per epoch (epoch runs), or a per-step schedule (``config.steps``).
+
+    The per-step schedule is a linear warm-up over ``warmup_steps`` from ``lr / warmup``,
+    then ``lr`` multiplied by ``lr_gamma`` at each of ``lr_milestones`` (fractions of
+    ``steps``).
+    """
+    if config.steps is None:
+        return torch.optim.lr_scheduler.StepLR(
+            optimizer, step_size=config.lr_step, gamma=config.lr_gamma
+        )
+    milestones = [round(f * config.steps) for f in config.lr_milestones]
+    warmup, gamma = config.warmup_steps, config.lr_gamma
+
+    def factor(step: int) -> float:
+        rise = min(1.0, (step + 1) / warmup) if warmup else 1.0
+        return rise * gamma ** sum(step >= m for m in milestones)
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def alpha_at(config: TrainConfig, epoch: int, step: int) -> float:
+    """α of Eq. (2) at 0-based ``epoch`` (epoch runs) or global ``step`` (step runs)."""
+    if config.steps is None:
+        return alpha_for_epoch(epoch, config.alpha_schedule)
+    fraction = step / config.steps
+    alpha = float(config.alpha_fractions[0][1])
+    for first, value in config.alpha_fractions:
+        if fraction >= first:
+            alpha = float(value)
+    return alpha
+
+
+def total_epochs(config: TrainConfig, steps_per_epoch: int) -> int:
+    """How many epochs the run has (the last one may be partial in a run of steps)."""
+    if config.steps is None:
+        return config.epochs
+    return max(1, math.ceil(config.steps / max(1, steps_per_epoch)))
+
+
+def steps_at_full_lr(config: TrainConfig, steps_per_epoch: int) -> tuple[int, int]:
+    """``(steps at the full learning rate, steps in the run)``."""
+    if config.steps is None:
+        total = config.epochs * steps_per_epoch
+        if config.lr_gamma == 1.0:
+            return total, total
+        return min(total, config.lr_step * steps_per_epoch), total
+    total = config.steps
+    if config.lr_gamma == 1.0 or not config.lr_milestones:
+        full = total
+    else:
+        full = round(config.lr_milestones[0] * total)
+    return max(0, full - config.warmup_steps), total
+
+
+def schedule_note(config: TrainConfig, steps_per_epoch: int) -> str | None:
+    """A warning when the run gets few steps at the full learning rate, else ``None``."""
+    full, total = steps_at_full_lr(config, steps_per_epoch)
+    if full >= FEW_STEPS_AT_FULL_LR or full >= total:
+        return None
+    how = (
+        f"StepLR every {config.lr_step} epochs of {steps_per_epoch} steps"
+        if config.steps is None
+        else f"the first milestone at {config.lr_milestones[0]:g} of {total} steps"
+    )
+    return (
+        f"only {full} of the run's {total} optimiser steps are at the full learning rate "
+        f"({how}); a flat curve later means the learning rate is gone, not convergence. "
+        "Size small data sets in steps (--steps) to give them the updates they need"
+    )
