@@ -130,3 +130,50 @@ def test_fresh_points_draw_a_new_cloud_from_the_pool_each_epoch(tmp_path: Path) 
     test = CompletionDataset(data, "train", crop="test", fresh_points=True)
     assert not test.fresh_points
     assert np.array_equal(test[1]["complete"].numpy(), clouds.points[1])
+
+
+def test_augmentation_is_seeded_and_does_what_it_says(tiny_dataset: Path) -> None:
+    from pfnet.data.augment import Augmentation, up_axis_index
+    from pfnet.data.format import read_manifest
+
+    up = up_axis_index(read_manifest(tiny_dataset))
+    assert up == 1  # procedural shapes are y-up
+    clouds = load_split(tiny_dataset, "train")
+    original = clouds.points[2].astype(np.float64)
+    rotate = CompletionDataset(
+        tiny_dataset, "train", crop="viewpoint", seed=5, augment=Augmentation(up_axis=up)
+    )
+    a = rotate.cloud(2, epoch=0).astype(np.float64)
+    assert np.allclose(a[:, 1], original[:, 1], atol=1e-6)  # the up coordinate stays
+    assert np.allclose(
+        np.hypot(a[:, 0], a[:, 2]), np.hypot(original[:, 0], original[:, 2]), atol=1e-5
+    )
+    assert not np.allclose(a, original, atol=1e-3)
+    assert np.array_equal(rotate.cloud(2, epoch=0), a.astype(np.float32))  # seeded
+    assert not np.array_equal(rotate.cloud(2, epoch=1), rotate.cloud(2, epoch=0))
+    item = rotate[(0, 2)]  # the crop is of the augmented cloud
+    assert np.array_equal(item["complete"].numpy(), rotate.cloud(2, epoch=0))
+
+    scale = Augmentation(scale=0.2)(original, np.random.default_rng(0)).astype(np.float64)
+    factors = scale.std(axis=0) / original.std(axis=0)
+    assert np.all((0.8 - 1e-6 <= factors) & (factors <= 1.2 + 1e-6)) and np.ptp(factors) > 0.01
+    noisy = Augmentation(jitter=0.01)(original, np.random.default_rng(0)) - original
+    assert 0.008 < noisy.std() < 0.012 and np.abs(noisy).max() <= 0.03 + 1e-6
+
+    # Off by default and never on the test protocol.
+    plain = CompletionDataset(tiny_dataset, "train", crop="viewpoint", seed=5)
+    assert np.array_equal(plain.cloud(2, epoch=0), clouds.points[2])
+    test = CompletionDataset(tiny_dataset, "train", crop="test", augment=Augmentation(up_axis=up))
+    assert test.augment is None and np.array_equal(test[2]["complete"].numpy(), clouds.points[2])
+
+
+def test_augmentation_errors() -> None:
+    from pfnet.data.augment import Augmentation, up_axis_index
+    from pfnet.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="manifest names it .* this one says 'as in the source'"):
+        up_axis_index({"up_axis": "as in the source"})
+    with pytest.raises(ConfigError, match=r"scale must be in \[0, 1\)"):
+        Augmentation(scale=1.5)
+    with pytest.raises(ConfigError, match=r"jitter must be in \[0, 0.1\]"):
+        Augmentation(jitter=float("nan"))

@@ -334,3 +334,21 @@ def test_schedule_config_errors() -> None:
         FAST.replace(alpha_fractions=((0.1, 0.01),))
     with pytest.raises(ConfigError, match="warmup_steps must be an integer >= 0"):
         FAST.replace(warmup_steps=-1)
+
+
+def test_augmented_training_runs_and_needs_a_known_up_axis(
+    tiny_dataset: Path, tmp_path: Path
+) -> None:
+    config = FAST.replace(model="mlp", epochs=1, width=0.125, augment_rotate=True)
+    config = config.replace(augment_scale=0.1, augment_jitter=0.005)
+    summary = train(config, tiny_dataset, tmp_path / "run", device="cpu", progress=False)
+    assert summary["epochs"] == 1
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["up_axis"] = "as in the source"
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ConfigError, match="augment_rotate: rotation about the up axis needs"):
+        train(config, data, tmp_path / "other", device="cpu")
+    with pytest.raises(ConfigError, match=r"augment_scale must be a number in \[0, 1\)"):
+        config.replace(augment_scale=1.0)

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from pfnet.data.augment import Augmentation
 from pfnet.data.crops import missing_count, test_protocol_viewpoints
 from pfnet.data.format import CloudSet, load_split
 from pfnet.errors import ConfigError
@@ -44,6 +45,8 @@ class CompletionDataset(Dataset):
             shape's pool (without replacement, seeded by ``(seed, epoch, index)``) before the
             crop, as the authors' loader draws 2048 of the raw points every time. The test
             protocol always uses the stored cloud.
+        augment: With a random crop: an :class:`~pfnet.data.augment.Augmentation` applied
+            to the complete cloud before the crop (seeded by ``(seed, epoch, index)``).
 
     Each item is a dict: ``partial`` ``(N - m, 3)``, ``missing`` ``(m, 3)``, ``complete``
     ``(N, 3)`` float32 tensors, ``category`` and ``name`` str, ``index`` int.
@@ -58,6 +61,7 @@ class CompletionDataset(Dataset):
         crop: str = "test",
         seed: int = 0,
         fresh_points: bool = False,
+        augment: Augmentation | None = None,
     ) -> None:
         if crop not in CROPS:
             raise ConfigError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
@@ -72,6 +76,9 @@ class CompletionDataset(Dataset):
         self.n_missing = missing_count(self.n_points, missing_ratio)
         self.epoch = 0
         self.fresh_points = bool(fresh_points) and crop != "test" and self.clouds.extra is not None
+        self.augment = (
+            augment if augment is not None and augment.active and crop != "test" else None
+        )
         self._viewpoints = test_protocol_viewpoints(len(self.clouds))
 
     def __len__(self) -> int:
@@ -100,13 +107,15 @@ class CompletionDataset(Dataset):
 
     def cloud(self, index: int, epoch: int | None = None) -> np.ndarray:
         """The complete cloud of sample ``index`` at ``epoch``: the stored one, or with
-        ``fresh_points`` a new draw of N points from the shape's pool."""
+        ``fresh_points`` a new draw of N points from the shape's pool; then augmented."""
         points = self.clouds.points[index]
-        if not self.fresh_points or self.clouds.extra is None:
-            return points
-        pool = np.concatenate([points, self.clouds.extra[index]])
-        rng = np.random.default_rng(self.crop_seed(index, epoch, stream=1))
-        return pool[np.sort(rng.choice(len(pool), self.n_points, replace=False))]
+        if self.fresh_points and self.clouds.extra is not None:
+            pool = np.concatenate([points, self.clouds.extra[index]])
+            rng = np.random.default_rng(self.crop_seed(index, epoch, stream=1))
+            points = pool[np.sort(rng.choice(len(pool), self.n_points, replace=False))]
+        if self.augment is not None:
+            points = self.augment(points, np.random.default_rng(self.crop_seed(index, epoch, 2)))
+        return points
 
     def __getitem__(self, key: int | tuple[int, int]) -> dict:
         """Sample ``key``: an index (at the current epoch) or an ``(epoch, index)`` pair."""

@@ -39,6 +39,8 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "lr_gamma": (float, "StepLR factor"),
     "adversarial_weight": (float, "λ_adv of the joint loss (paper 0.05)"),
     "workers": (int, "data-loader worker processes, alive for the whole run"),
+    "augment_scale": (float, "scale each axis of training clouds by U(1-s, 1+s) (default 0)"),
+    "augment_jitter": (float, "std of Gaussian noise added to training clouds (default 0)"),
     "save_every": (
         str,
         "write last.pt every this long (10min, 90s, 1h) or N epochs (default 10min)",
@@ -63,6 +65,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="fp32 (exact, default) or bf16 autocast of the networks (Chamfer stays float32)",
     )
     parser.add_argument(
+        "--augment-rotate",
+        dest="augment_rotate",
+        action="store_const",
+        const=True,
+        help="rotate training clouds by a random angle about the data set's up axis",
+    )
+    parser.add_argument(
         "--compile",
         action="store_const",
         const=True,
@@ -84,7 +93,7 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
 
     With ``--resume`` the base is the run's stored ``config.json`` instead.
     """
-    names = ("model", "crop", "precision", "compile", *OVERRIDES)
+    names = ("model", "crop", "precision", "compile", "augment_rotate", *OVERRIDES)
     overrides = {name: getattr(args, name) for name in names}
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if args.resume:

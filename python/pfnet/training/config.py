@@ -58,6 +58,12 @@ class TrainConfig:
         crop: Training crop: ``viewpoint`` (one of the five), ``sphere`` or ``multi`` region.
         fresh_points: Draw every training cloud afresh from the data set's pool of points
             when it has one (``pfnet prepare --pool``), as the authors' loader does.
+        augment_rotate: Rotate every training cloud by a random angle about the data set's
+            up axis (its manifest's ``up_axis``).
+        augment_scale: Scale each axis of every training cloud by a factor drawn from
+            ``[1 - s, 1 + s]`` (0: off).
+        augment_jitter: Standard deviation of Gaussian noise added to training clouds
+            (0: off).
         seed: Seed of initialisation, shuffling and crops.
         workers: Data-loader worker processes (kept alive for the whole run).
         precision: ``fp32`` (exact, the default) or ``bf16``: the networks run under
@@ -93,6 +99,9 @@ class TrainConfig:
     loss_scale: float = 50.0
     crop: str = "viewpoint"
     fresh_points: bool = True
+    augment_rotate: bool = False
+    augment_scale: float = 0.0
+    augment_jitter: float = 0.0
     seed: int = 0
     workers: int = 2
     precision: str = "fp32"
@@ -363,6 +372,21 @@ def _validate(c: TrainConfig) -> None:
     )
     _require(c.crop in TRAIN_CROPS, "crop", c.crop, f"one of {', '.join(TRAIN_CROPS)}")
     _require(isinstance(c.fresh_points, bool), "fresh_points", c.fresh_points, "true or false")
+    _require(
+        isinstance(c.augment_rotate, bool), "augment_rotate", c.augment_rotate, "true or false"
+    )
+    _require(
+        _is_number(c.augment_scale) and 0 <= c.augment_scale < 1,
+        "augment_scale",
+        c.augment_scale,
+        "a number in [0, 1)",
+    )
+    _require(
+        _is_number(c.augment_jitter) and 0 <= c.augment_jitter <= 0.1,
+        "augment_jitter",
+        c.augment_jitter,
+        "a number in [0, 0.1]",
+    )
     _require(_is_int(c.seed) and c.seed >= 0, "seed", c.seed, "an integer >= 0")
     _require(_is_int(c.workers) and c.workers >= 0, "workers", c.workers, "an integer >= 0")
     _require(c.precision in PRECISIONS, "precision", c.precision, f"one of {', '.join(PRECISIONS)}")

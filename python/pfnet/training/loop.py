@@ -30,6 +30,8 @@ from torch.utils.data import BatchSampler, DataLoader, DistributedSampler, Sampl
 from tqdm import tqdm
 
 from pfnet.checkpoint import read_checkpoint
+from pfnet.data.augment import Augmentation, up_axis_index
+from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError, DataError
 from pfnet.geometry import farthest_point_sample
 from pfnet.io import atomic_path
@@ -208,6 +210,7 @@ class Trainer:
             crop=config.crop,
             seed=config.seed,
             fresh_points=config.fresh_points,
+            augment=_augmentation(config, data_dir),
         )
         self.val_set = CompletionDataset(
             data_dir, "val", missing_ratio=config.missing_ratio, crop="test", seed=config.seed
@@ -538,6 +541,19 @@ class Trainer:
             values = values.cpu()
         count = float(values[-1]) or 1.0
         return {k: float(v) / count for k, v in zip(keys, values[:-1].tolist(), strict=True)}
+
+
+def _augmentation(config: TrainConfig, data_dir: Path) -> Augmentation | None:
+    """The training augmentation the config asks for (``None`` when it asks for none)."""
+    if not (config.augment_rotate or config.augment_scale or config.augment_jitter):
+        return None
+    up_axis = None
+    if config.augment_rotate:
+        try:
+            up_axis = up_axis_index(read_manifest(data_dir))
+        except ConfigError as err:
+            raise ConfigError(f"augment_rotate: {err} ({data_dir})") from None
+    return Augmentation(up_axis, config.augment_scale, config.augment_jitter)
 
 
 def _resumed_config(config: TrainConfig, state: dict[str, Any], path: Path) -> TrainConfig:
