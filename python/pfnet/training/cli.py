@@ -36,7 +36,7 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "weight_decay": (float, "Adam weight decay"),
     "width": (float, "network width multiplier (paper 1.0, small 0.25)"),
     "lr_step": (int, "StepLR period in epochs"),
-    "lr_gamma": (float, "StepLR factor"),
+    "lr_gamma": (float, "learning-rate factor at each StepLR period or --steps milestone"),
     "adversarial_weight": (float, "λ_adv of the joint loss (paper 0.05)"),
     "workers": (int, "data-loader worker processes, alive for the whole run"),
     "augment_scale": (float, "scale each axis of training clouds by U(1-s, 1+s) (default 0)"),
