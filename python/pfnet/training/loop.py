@@ -165,8 +165,13 @@ class EpochBatches(Sampler[list[tuple[int, int]]]):
             if i >= self.skip:
                 yield [(self.epoch, index) for index in batch]
 
+    @property
+    def per_epoch(self) -> int:
+        """Batches in a whole epoch."""
+        return math.ceil(len(self.sampler) / self.batch_size)
+
     def __len__(self) -> int:
-        return max(0, math.ceil(len(self.sampler) / self.batch_size) - self.skip)
+        return max(0, self.per_epoch - self.skip)
 
 
 class Trainer:
@@ -244,7 +249,7 @@ class Trainer:
         self.best_epoch: int | None = None
         self.history: list[dict[str, Any]] = []
         self.batches = EpochBatches(self.sampler, config.batch_size)
-        self.steps_per_epoch = math.ceil(len(self.sampler) / config.batch_size)
+        self.steps_per_epoch = self.batches.per_epoch
         self.epochs = total_epochs(config, self.steps_per_epoch)
         self.save_schedule = SaveSchedule.parse(config.save_every)
         self._loader: DataLoader | None = None
@@ -442,7 +447,6 @@ class Trainer:
         c, ctx = self.config, self.context
         epoch = self.epoch
         alpha = alpha_at(c, epoch, self.global_step)
-        self.train_set.set_epoch(epoch)
         self.batches.set_epoch(epoch, skip=self.batches_done)
         loader = self._train_loader()
         total = len(loader) + self.batches_done
