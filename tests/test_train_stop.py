@@ -19,6 +19,7 @@ import pfnet.checkpoint  # noqa: E402
 from pfnet.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
 from pfnet.training import preset_config, train  # noqa: E402
 from pfnet.training.loop import Trainer  # noqa: E402
+from pfnet.training.signals import StopRequest, spawn_shielded, start_helpers  # noqa: E402
 from pfnet.training.step import TrainingStep  # noqa: E402
 
 # 24 training shapes in batches of 6: 4 steps an epoch.
@@ -84,6 +85,54 @@ def test_ctrl_c_at_any_moment_saves_and_resumes_exactly(
     for key in ("model", "discriminator"):
         for name, tensor in a[key].items():
             assert torch.equal(tensor, b[key][name]), f"{moment}: {key}.{name}"
+
+
+def _blocked_and_ignored(pid: int) -> int:
+    """The signals process ``pid`` blocks or ignores, as a bit mask (bit n-1: signal n)."""
+    fields = dict(
+        line.split(":\t", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+    )
+    return int(fields["SigBlk"], 16) | int(fields["SigIgn"], 16)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_helpers_hold_the_stop_signals_from_their_first_instruction() -> None:
+    code = "import time; time.sleep(60)"
+    pid = spawn_shielded(sys.executable, [sys.executable, "-c", code], [])
+    try:
+        mask = _blocked_and_ignored(pid)  # before the interpreter has run a line of Python
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            assert mask & (1 << (signum - 1)), signal.Signals(signum).name
+        os.kill(pid, signal.SIGINT)
+        time.sleep(0.2)
+        assert os.waitpid(pid, os.WNOHANG) == (0, 0)  # still alive
+    finally:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+
+
+def test_passed_descriptors_reach_the_helper_and_stay_private_here() -> None:
+    read, write = os.pipe()
+    code = f"import os; os.write({write}, b'hello')"
+    pid = spawn_shielded(sys.executable, [sys.executable, "-c", code], [write])
+    try:
+        assert not os.get_inheritable(write)
+        assert os.waitpid(pid, 0)[1] == 0
+        assert os.read(read, 5) == b"hello"
+    finally:
+        os.close(read), os.close(write)
+
+
+def test_a_stop_signal_while_the_helpers_start_reaches_the_training_process(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The old code ignored SIGINT here for the spawn, and a Ctrl-C in that moment was lost."""
+    from multiprocessing import forkserver
+
+    monkeypatch.setattr(forkserver, "ensure_running", lambda: signal.raise_signal(signal.SIGINT))
+    with StopRequest().installed() as stop:
+        start_helpers()
+        assert stop.requested
 
 
 def _has_fork_server(pid: int) -> bool:

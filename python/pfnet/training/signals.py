@@ -5,10 +5,13 @@ data-loader workers, the fork server that starts them and multiprocessing's reso
 tracker. Only the training process may act on it (it finishes the batch, saves ``last.pt``
 and exits with 130); a helper that died of it would break the next batch fetch (the old
 ``BrokenPipeError`` of a fork server killed while it imported torch). The helpers are
-therefore started with SIGINT and SIGTERM *ignored*: an ignored disposition survives fork
-and exec (a blocked mask does not survive multiprocessing's exec), so the fork server and
-every worker it forks ignore both from their first instruction. The training process
-ignores them only for the milliseconds it takes to spawn the fork server.
+therefore spawned with SIGINT and SIGTERM *blocked* in their signal mask: a mask set by
+``posix_spawn`` survives exec and fork, so the fork server and every worker it forks hold
+both signals from their first instruction (multiprocessing's own spawn clears the mask, so
+:func:`start_helpers` swaps in :func:`spawn_shielded` while it starts them). The training
+process never changes its own handlers for this: a signal sent at any moment, while the
+helpers start included, reaches it (ignoring them there for the spawn lost a Ctrl-C sent in
+those milliseconds).
 """
 
 from __future__ import annotations
@@ -16,13 +19,31 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import multiprocessing.context
+import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def spawn_shielded(path: str, args: Sequence[str], passfds: Iterable[int]) -> int:
+    """``multiprocessing.util.spawnv_passfds`` with SIGINT and SIGTERM blocked in the child.
+
+    Starts ``path`` with ``args``, passing the descriptors ``passfds`` (and 0-2; Python
+    opens every other descriptor non-inheritable), and returns its pid.
+    """
+    fds = sorted({int(fd) for fd in passfds})
+    inheritable = [os.get_inheritable(fd) for fd in fds]
+    for fd in fds:
+        os.set_inheritable(fd, True)
+    try:
+        return os.posix_spawn(path, list(args), os.environ, setsigmask=STOP_SIGNALS)
+    finally:
+        for fd, flag in zip(fds, inheritable, strict=True):
+            os.set_inheritable(fd, flag)
 
 
 def start_helpers() -> multiprocessing.context.BaseContext:
@@ -31,19 +52,18 @@ def start_helpers() -> multiprocessing.context.BaseContext:
     Workers come from a fork server that has imported pfnet but run nothing: a plain
     ``fork`` of a process that runs CUDA or several threads copies their state without the
     threads, and the fork server's forks are cheap. The fork server and the resource
-    tracker are spawned here, with SIGINT and SIGTERM ignored (see the module docstring).
+    tracker are spawned here by :func:`spawn_shielded` (see the module docstring).
     """
-    from multiprocessing import forkserver
+    from multiprocessing import forkserver, util
 
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(["pfnet.training.loop"])
-    if threading.current_thread() is threading.main_thread():
-        previous = {signum: signal.signal(signum, signal.SIG_IGN) for signum in STOP_SIGNALS}
-        try:
-            forkserver.ensure_running()
-        finally:
-            for signum, handler in previous.items():
-                signal.signal(signum, handler)
+    spawn = util.spawnv_passfds
+    util.spawnv_passfds = spawn_shielded
+    try:
+        forkserver.ensure_running()
+    finally:
+        util.spawnv_passfds = spawn
     return context
 
 
