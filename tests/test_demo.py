@@ -8,13 +8,31 @@ import pytest
 
 pytest.importorskip("torch")
 
+import pfnet.shipped  # noqa: E402
 from pfnet import demo  # noqa: E402
+from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
+from pfnet.models import build_model  # noqa: E402
+from pfnet.training.config import preset_config  # noqa: E402
+
+
+def _ship_a_512_point_model(folder):
+    """An untrained 512-point model file standing in for the shipped default model."""
+    config = preset_config("small").replace(n_points=512, width=0.125)
+    checkpoint = folder / "model.pt"
+    save_checkpoint(
+        checkpoint, {"config": config.to_dict(), "model": build_model(config).state_dict()}
+    )
+    pfnet.shipped.write_shipped(
+        checkpoint, folder / "weights" / f"{pfnet.shipped.DEFAULT_MODEL}.safetensors"
+    )
 
 
 @pytest.mark.slow
 def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(demo, "SWEETHOME3D_FURNITURE", tmp_path / "no-furniture")
+    _ship_a_512_point_model(tmp_path)
+    monkeypatch.setattr(pfnet.shipped, "WEIGHTS_DIR", tmp_path / "weights")
     out = tmp_path / "demo"
     args = ["demo", "--out", str(out), "--count", "3", "--points", "512", "--minutes", "0.01"]
     assert main([*args, "--gallery-count", "2"]) == 0
@@ -22,8 +40,13 @@ def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys)
     assert "sudo apt-get install sweethome3d-furniture" in text
     assert "Using procedural shapes" in text
     assert "an epoch takes" in text and "training 2 epochs in all" in text
-    for step in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
+    for step in ("[1/6]", "[2/6]", "[3/6]", "[4/6]", "[5/6]", "[6/6]"):
         assert step in text
+    # the shipped model's completions of the same test split, scored beside the run's
+    assert "  shipped model " in text and "F-score@0.01" in text
+    shipped = json.loads((out / "predictions-shipped" / "predictions.json").read_text())
+    assert shipped["checkpoint"] == f"shipped:{pfnet.shipped.DEFAULT_MODEL}"
+    assert json.loads((out / "metrics-shipped.json").read_text())["mean"]["pred_to_gt"] > 0
     assert (out / "data" / "manifest.json").is_file()
     assert (out / "gallery.png").read_bytes()[:4] == b"\x89PNG"
     report = json.loads((out / "metrics.json").read_text())
@@ -33,10 +56,13 @@ def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys)
     assert predictions["n_samples"] == sum(c["n"] for c in report["categories"].values())
     assert f"checkpoint    {out / 'run'}" in text
 
-    # A second run reuses the data set and trains into a fresh run folder.
+    # A second run reuses the data set and trains into a fresh run folder; with no shipped
+    # model it says so and skips the comparison.
+    monkeypatch.setattr(pfnet.shipped, "WEIGHTS_DIR", tmp_path / "nothing")
     assert main([*args[:-2], "--epochs", "1", "--procedural"]) == 0
     text = capsys.readouterr().out
     assert "reusing the data set" in text and str(out / "run-2") in text
+    assert "no shipped model" in text and "skipping the comparison" in text
 
 
 def test_demo_argument_errors(tmp_path, capsys):

@@ -57,28 +57,38 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
 
 
 def load_checkpoint(
-    path: str | os.PathLike[str], device: str | torch.device = "cpu"
+    path: str | os.PathLike[str] | None, device: str | torch.device = "cpu"
 ) -> tuple[nn.Module, TrainConfig]:
-    """Rebuild the trained generator from a checkpoint.
+    """Rebuild a trained generator from a checkpoint or a shipped model.
 
     Args:
-        path: A ``last.pt`` or ``best.pt`` written by ``pfnet train``.
+        path: A ``last.pt`` or ``best.pt`` written by ``pfnet train``, a model file
+            (``.safetensors``, :mod:`pfnet.shipped`), or the name of a shipped model;
+            ``None`` for the default shipped model.
         device: Where to put the model.
 
     Returns:
-        ``(model, config)``: the generator in eval mode on ``device`` and its
+        ``(model, config)``: the generator (float32) in eval mode on ``device`` and its
         :class:`TrainConfig` (``model``, ``n_points``, ``n_missing``, ``missing_ratio``, ...).
 
     Raises:
-        DataError: The file is missing, unreadable or not a pfnet checkpoint.
+        ConfigError: ``path`` names neither a file nor a shipped model.
+        DataError: The file is unreadable or not a pfnet checkpoint or model file.
     """
     from pfnet.models import build_model
+    from pfnet.shipped import SUFFIX, load_weights, read_metadata, resolve_checkpoint
 
-    state = read_checkpoint(path, device)
-    config = TrainConfig.from_dict(state["config"], source=f"checkpoint {path}")
+    path = resolve_checkpoint(path)
+    if path.name.endswith(SUFFIX):
+        config_dict, _ = read_metadata(path)
+        weights = load_weights(path, device="cpu")
+    else:
+        state = read_checkpoint(path, device)
+        config_dict, weights = state["config"], state["model"]
+    config = TrainConfig.from_dict(config_dict, source=f"checkpoint {path}")
     model = build_model(config)
     try:
-        model.load_state_dict(state["model"])
+        model.load_state_dict(weights)  # copies float16 model files into float32 parameters
     except RuntimeError as err:
         raise DataError(f"checkpoint {path} does not match its model: {err}") from None
     return model.to(device).eval(), config

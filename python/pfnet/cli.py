@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "complete": "pfnet.complete",
     "evaluate": "pfnet.evaluate",
     "render": "pfnet.render",
+    "models": "pfnet.list_models",
     "demo": "pfnet.demo",
     "reproduce": "pfnet.reproduce",
 }

@@ -137,7 +137,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "inputs", nargs="+", type=Path, metavar="INPUT", help="partial clouds to complete"
     )
-    parser.add_argument("--checkpoint", type=Path, required=True, help="trained checkpoint (.pt)")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="checkpoint (best.pt of pfnet train), model file or shipped model's name "
+        "(default: the shipped default model; see pfnet models)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument(

@@ -7,7 +7,10 @@
    trained and the second one timed (the first pays for start-up), then the run is resumed
    for as many epochs as fit in the rest of the budget.
 3. Predict the test split with the deterministic test protocol, evaluate it (Chamfer ×1000,
-   F-score), and render a gallery PNG.
+   F-score), and do the same with the shipped default model (trained for hours on the
+   training split of the same catalogues; the test split is one it has never seen).
+4. Render a gallery PNG: each test sample's input, the short run's completion, the shipped
+   model's completion and the ground truth.
 
 Everything goes under ``--out``; running the demo again reuses the data set if it is there.
 """
@@ -98,6 +101,17 @@ def fresh_folder(path: Path) -> Path:
     return candidate
 
 
+def comparison_table(run: dict, shipped: dict) -> str:
+    """The mean metrics of the short run beside the shipped model's, as text."""
+    lines = ["                  Pred→GT  GT→Pred  F-score@0.01   (missing region, ×1000)"]
+    for label, mean in (("this run", run), ("shipped model", shipped)):
+        lines.append(
+            f"  {label:<15}{mean['pred_to_gt']:8.3f} {mean['gt_to_pred']:8.3f} "
+            f"{mean['f_score']:13.3f}"
+        )
+    return "\n".join(lines)
+
+
 def find_checkpoint(run_dir: Path) -> Path:
     """The best checkpoint of a training run (``best.pt``, else ``last.pt``)."""
     for name in ("best.pt", "last.pt"):
@@ -117,7 +131,25 @@ def epochs_for_budget(left_s: float, epoch_s: float, preset_epochs: int) -> int:
 
 
 def _step(number: int, text: str) -> None:
-    print(f"\n[{number}/5] {text}", flush=True)
+    print(f"\n[{number}/6] {text}", flush=True)
+
+
+def shipped_comparison(data_dir: Path, points: int) -> Path | None:
+    """The default shipped model's file if it completes clouds of this data set's size."""
+    from pfnet.shipped import DEFAULT_MODEL, SUFFIX, WEIGHTS_DIR, read_metadata
+
+    path = WEIGHTS_DIR / f"{DEFAULT_MODEL}{SUFFIX}"
+    if not path.is_file():
+        print(f"no shipped model {DEFAULT_MODEL} in this installation; skipping the comparison")
+        return None
+    config, _ = read_metadata(path)
+    if config.get("n_points") != points:
+        print(
+            f"the shipped model {DEFAULT_MODEL} takes {config.get('n_points')}-point clouds, "
+            f"this data set has {points}; skipping the comparison"
+        )
+        return None
+    return path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         write_json,
     )
     from pfnet.predict import predict_split, resolve_device
+    from pfnet.shipped import describe
     from pfnet.training import train
     from pfnet.training.config import preset_config
 
@@ -186,7 +219,20 @@ def run(args: argparse.Namespace) -> int:
     metrics_path = out / "metrics.json"
     write_json(metrics_path, evaluation.report)
 
-    _step(5, "rendering a gallery")
+    _step(5, "the shipped model on the same test split")
+    shipped = shipped_comparison(data_dir, int(manifest.get("points", args.points)))
+    columns = {"this run": pred_dir}
+    shipped_mean = None
+    if shipped is not None:
+        shipped_dir = out / "predictions-shipped"
+        predict_split(shipped, data_dir, shipped_dir, device=device, missing_ratio=ratio)
+        shipped_eval = evaluate_predictions(shipped_dir, data_dir, missing_ratio=ratio)
+        write_json(out / "metrics-shipped.json", shipped_eval.report)
+        shipped_mean = shipped_eval.report["mean"]
+        columns[f"shipped {describe(shipped).removeprefix('shipped:')}"] = shipped_dir
+        print(comparison_table(evaluation.report["mean"], shipped_mean))
+
+    _step(6, "rendering a gallery")
     gallery = render_evaluation_gallery(
         out / "gallery.png",
         evaluation,
@@ -195,6 +241,7 @@ def run(args: argparse.Namespace) -> int:
         split="test",
         missing_ratio=ratio,
         count=args.gallery_count,
+        columns=columns,
     )
 
     minutes = (time.monotonic() - started) / 60.0
@@ -207,6 +254,11 @@ def run(args: argparse.Namespace) -> int:
         f"  metrics       {metrics_path}  (mean Pred→GT {mean['pred_to_gt']:.3f}, "
         f"GT→Pred {mean['gt_to_pred']:.3f}, ×{SCALE})"
     )
+    if shipped_mean is not None:
+        print(
+            f"  shipped model {out / 'metrics-shipped.json'}  (mean Pred→GT "
+            f"{shipped_mean['pred_to_gt']:.3f}, GT→Pred {shipped_mean['gt_to_pred']:.3f})"
+        )
     print(f"  gallery       {gallery}")
     for licence in manifest.get("licenses") or []:
         # One line per catalogue; the per-shape creators are in the data set's manifest.json.
@@ -214,5 +266,6 @@ def run(args: argparse.Namespace) -> int:
             f"  data credit   {licence.get('catalogue')} ({licence.get('license')}), "
             f"{len(licence.get('creators', []))} creators, see {data_dir / 'manifest.json'}"
         )
-    print(f"next: pfnet complete your_scan.ply --checkpoint {checkpoint} --out completed/")
+    print("next: pfnet complete your_scan.ply --out completed/   (the shipped model)")
+    print(f"      pfnet complete your_scan.ply --checkpoint {checkpoint} --out completed/")
     return 0

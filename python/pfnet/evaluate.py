@@ -272,12 +272,18 @@ def render_evaluation_gallery(
     split: str,
     missing_ratio: float,
     count: int,
+    columns: dict[str, Path] | None = None,
 ) -> Path:
-    """Render ``count`` scored samples (spread over the categories) as partial/pred/gt rows."""
+    """Render ``count`` scored samples (spread over the categories) as partial/pred/gt rows.
+
+    ``columns`` (title -> prediction folder) draws several models' completions of the same
+    samples side by side instead of ``pred_dir``'s alone.
+    """
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.io import read_point_cloud
-    from pfnet.render import RenderSample, render_gallery
+    from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
 
+    columns = columns or {"completion": pred_dir}
     clouds = load_split(data_dir, split)
     index = {
         (str(c), str(n)): i
@@ -288,13 +294,23 @@ def render_evaluation_gallery(
     points = np.asarray(clouds.points)
     # Crop the whole split: sample i's viewpoint depends on its index in the split.
     partial, _ = test_protocol_crop(points, missing_ratio)
-    files = find_prediction_files(pred_dir)
-    samples = []
+    files = {title: find_prediction_files(folder) for title, folder in columns.items()}
+    panel_rows = []
     for i, k in zip(rows, chosen, strict=True):
         key = f"{evaluation.categories[k]}/{evaluation.names[k]}"
-        samples.append(RenderSample(key, partial[i], read_point_cloud(files[key]), points[i]))
-    return render_gallery(
-        out, samples, title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing"
+        panels = [("input", [(partial[i], PARTIAL_COLOR)])]
+        for title, found in files.items():
+            if key not in found:
+                raise DataError(f"{columns[title]} has no prediction for {key}")
+            completion = read_point_cloud(found[key])
+            panels.append((title, [(partial[i], PARTIAL_COLOR), (completion, PREDICTION_COLOR)]))
+        panels.append(("ground truth", [(points[i], GROUND_TRUTH_COLOR)]))
+        panel_rows.append((key, panels))
+    return render_panels(
+        out,
+        panel_rows,
+        views=2 if len(columns) == 1 else 1,
+        title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing",
     )
 
 

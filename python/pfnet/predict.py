@@ -75,7 +75,7 @@ def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: st
 
 
 def predict_split(
-    checkpoint: str | os.PathLike[str],
+    checkpoint: str | os.PathLike[str] | None,
     data_dir: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
@@ -87,7 +87,8 @@ def predict_split(
     """Predict every sample of ``split`` and write ``out_dir`` (see the module docstring).
 
     Args:
-        checkpoint: A checkpoint written by ``pfnet train``.
+        checkpoint: A checkpoint written by ``pfnet train``, a model file or a shipped
+            model's name; ``None`` for the default shipped model.
         data_dir: A prepared data set.
         out_dir: Prediction folder to create or fill (existing files are replaced).
         split: ``train``, ``val`` or ``test``.
@@ -105,8 +106,10 @@ def predict_split(
     from pfnet.checkpoint import load_checkpoint
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.io import atomic_path, save_npy
+    from pfnet.shipped import describe, resolve_checkpoint
 
     device = resolve_device(device)
+    checkpoint = resolve_checkpoint(checkpoint)
     model, config = load_checkpoint(checkpoint, device=device)
     trained_ratio = config_value(config, "missing_ratio")
     ratio = float(trained_ratio if missing_ratio is None else missing_ratio)
@@ -126,7 +129,7 @@ def predict_split(
     for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
         save_npy(out / str(cat) / f"{name}.npy", cloud)
     info = {
-        "checkpoint": str(Path(checkpoint).resolve()),
+        "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,
         "protocol": {
@@ -152,7 +155,12 @@ def predict_split(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``pfnet predict``."""
-    parser.add_argument("--checkpoint", type=Path, required=True, help="trained checkpoint (.pt)")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="checkpoint (best.pt of pfnet train), model file or shipped model's name "
+        "(default: the shipped default model; see pfnet models)",
+    )
     parser.add_argument("--data", type=Path, required=True, help="prepared data set folder")
     parser.add_argument("--split", default="test", help="split to predict (default: test)")
     parser.add_argument(

@@ -1,0 +1,84 @@
+"""Turn a training run's ``best.pt`` into a shipped model file with a measured model card.
+
+    python benchmarks/ship_model.py RUN/best.pt --name sh3d-small \\
+        --train-data data/sh3d-all --test-data data/sh3d --summary "..." --recipe "..."
+
+The float16 file is written first, then *it* (not the float32 checkpoint) predicts the test
+split of ``--test-data`` with the deterministic test protocol and is scored (missing region,
+25 %); those figures, the training data's catalogues, licences and per-model credits go into
+the card, and the file is written again with the card to ``python/pfnet/weights/NAME``.
+The test split must be one the run never trained on: the script refuses if a test shape's
+name is among the training data's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+from pfnet.data import load_split, read_manifest
+from pfnet.evaluate import evaluate_predictions
+from pfnet.predict import predict_split
+from pfnet.shipped import SUFFIX, WEIGHTS_DIR, write_shipped
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("--name", required=True)
+    parser.add_argument("--train-data", type=Path, required=True, help="data set it trained on")
+    parser.add_argument("--test-data", type=Path, required=True, help="data set to score on")
+    parser.add_argument("--summary", required=True, help="one line for `pfnet models`")
+    parser.add_argument("--recipe", required=True, help="how it was trained (the command)")
+    parser.add_argument("--out-dir", type=Path, default=WEIGHTS_DIR)
+    args = parser.parse_args(argv)
+
+    trained_on = {str(n) for n in load_split(args.train_data, "train").name}
+    test = load_split(args.test_data, "test")
+    leaked = sorted(trained_on & {str(n) for n in test.name})
+    if leaked:
+        sys.exit(f"refusing: {len(leaked)} test shapes were trained on, e.g. {leaked[:3]}")
+
+    out = args.out_dir / f"{args.name}{SUFFIX}"
+    with tempfile.TemporaryDirectory() as scratch:
+        draft = write_shipped(args.checkpoint, Path(scratch) / f"draft{SUFFIX}")
+        pred = Path(scratch) / "pred"
+        predict_split(draft, args.test_data, pred, device="cpu")
+        evaluation = evaluate_predictions(pred, args.test_data, missing_ratio=0.25)
+    mean = evaluation.report["mean"]
+    manifest = read_manifest(args.train_data)
+    card = {
+        "summary": args.summary,
+        "recipe": args.recipe,
+        "train_data": {
+            "source": manifest.get("source"),
+            "shapes": len(trained_on),
+            "categories": manifest.get("categories"),
+            "licenses": [
+                {k: v for k, v in licence.items() if k != "creators"}
+                for licence in manifest.get("licenses") or []
+            ],
+        },
+        "test": {
+            "data": f"{args.test_data.name} test split ({len(test)} shapes, never trained "
+            "on), 25 % missing, mean over categories",
+            "pred_to_gt": mean["pred_to_gt"],
+            "gt_to_pred": mean["gt_to_pred"],
+            "cd_l2": mean["pred_to_gt"] + mean["gt_to_pred"],
+            "f_score": mean["f_score"],
+            "categories": evaluation.report["categories"],
+        },
+        "credits": manifest.get("credits") or {},
+    }
+    write_shipped(args.checkpoint, out, card=card)
+    size = out.stat().st_size / 1e6
+    print(json.dumps({k: v for k, v in card.items() if k != "credits"}, indent=2))
+    print(f"wrote {out} ({size:.1f} MB); test CD-L2 {card['test']['cd_l2']:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,49 @@
+"""``pfnet models``: the trained models shipped with this installation."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+HELP = "list the trained models shipped with pfnet (usable as --checkpoint NAME)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pfnet models``."""
+    parser.add_argument("--json", action="store_true", help="print the model cards as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``pfnet models``."""
+    from pfnet.shipped import DEFAULT_MODEL, shipped_models
+
+    models = shipped_models()
+    if args.json:
+        cards = [
+            {"name": m.name, "default": m.name == DEFAULT_MODEL, "path": str(m.path), **m.card}
+            for m in models
+        ]
+        print(json.dumps(cards, indent=2))
+        return 0
+    if not models:
+        print("no models are shipped with this installation")
+        return 0
+    for model in models:
+        card, config = model.card, model.config
+        default = "  (default)" if model.name == DEFAULT_MODEL else ""
+        print(f"{model.name}{default}")
+        print(f"  {card.get('summary', '')}".rstrip())
+        print(
+            f"  network   {config.get('model')}, width {config.get('width')}, "
+            f"{config.get('n_points')} points in, predicts the missing "
+            f"{config.get('missing_ratio', 0):.0%}; {model.size_mb:.1f} MB"
+        )
+        test = card.get("test")
+        if isinstance(test, dict):
+            print(
+                f"  test      {test.get('data', '?')}: Pred->GT + GT->Pred x1000 "
+                f"{test.get('cd_l2', float('nan')):.2f}, "
+                f"F-score@0.01 {test.get('f_score', float('nan')):.3f}"
+            )
+        print(f"  use       pfnet complete SCAN.ply --checkpoint {model.name} --out DIR")
+    return 0

@@ -1,0 +1,170 @@
+"""Trained models shipped inside the package: completion with no training run and no download.
+
+A shipped model is one ``safetensors`` file in ``pfnet/weights/``: the generator's weights
+(floating-point tensors stored as float16, which halves the file and changes completions by
+far less than the metrics resolve) and, in the file's metadata, the training configuration
+and a model card (data, recipe, measured test metrics). Reading the metadata needs neither
+torch nor the tensors, so ``pfnet models`` lists models instantly.
+
+Wherever a command takes ``--checkpoint``, it accepts a checkpoint path (``best.pt`` /
+``last.pt`` of ``pfnet train``, or a ``.safetensors`` file written by :func:`write_shipped`)
+or the name of a shipped model; with none, ``complete`` and ``predict`` use
+:data:`DEFAULT_MODEL`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pfnet.errors import ConfigError, DataError
+
+FORMAT = "pfnet-shipped-model"
+VERSION = "1"
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+SUFFIX = ".safetensors"
+# The model `complete` and `predict` use when no --checkpoint is given.
+DEFAULT_MODEL = "sh3d-small"
+
+
+@dataclass(frozen=True)
+class ShippedModel:
+    """One model file and what its metadata says about it."""
+
+    name: str
+    path: Path
+    config: dict[str, Any]
+    card: dict[str, Any]
+
+    @property
+    def size_mb(self) -> float:
+        """The file's size in MB."""
+        return self.path.stat().st_size / 1e6
+
+
+def read_metadata(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(config, card)`` from a model file's header, without reading its tensors.
+
+    Raises:
+        DataError: Not a readable pfnet model file (naming the path).
+    """
+    from safetensors import safe_open
+
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="numpy") as handle:
+            metadata = handle.metadata() or {}
+    except Exception as err:  # safetensors raises its own error types for bad headers
+        raise DataError(f"model file {path} cannot be read: {err}") from None
+    if metadata.get("format") != FORMAT:
+        raise DataError(f"{path} is not a pfnet model file (no {FORMAT!r} metadata)")
+    if metadata.get("version") != VERSION:
+        raise DataError(
+            f"model file {path} has format version {metadata.get('version')}; "
+            f"this pfnet reads version {VERSION}"
+        )
+    try:
+        config = json.loads(metadata["config"])
+        card = json.loads(metadata.get("card", "{}"))
+    except (KeyError, json.JSONDecodeError) as err:
+        raise DataError(f"model file {path} has a broken header: {err}") from None
+    if not isinstance(config, dict) or not isinstance(card, dict):
+        raise DataError(f"model file {path} has a broken header: config and card must be maps")
+    return config, card
+
+
+def shipped_models() -> list[ShippedModel]:
+    """Every model shipped with this installation, by name."""
+    models = []
+    for path in sorted(WEIGHTS_DIR.glob(f"*{SUFFIX}")):
+        config, card = read_metadata(path)
+        models.append(ShippedModel(path.name[: -len(SUFFIX)], path, config, card))
+    return models
+
+
+def resolve_checkpoint(value: str | os.PathLike[str] | None) -> Path:
+    """The file behind a ``--checkpoint`` value: an existing path, else a shipped model's name.
+
+    ``None`` means the default shipped model.
+
+    Raises:
+        ConfigError: Neither a file nor a shipped model's name.
+    """
+    if value is None:
+        value = DEFAULT_MODEL
+    path = Path(value)
+    if path.is_file():
+        return path
+    name = str(value)
+    candidate = WEIGHTS_DIR / f"{name}{SUFFIX}"
+    if os.sep not in name and "/" not in name and candidate.is_file():
+        return candidate
+    if path.exists():
+        raise ConfigError(f"checkpoint {path} is not a file")
+    names = ", ".join(model.name for model in shipped_models()) or "none in this installation"
+    if path.suffix or len(path.parts) > 1:  # meant as a file
+        raise ConfigError(f"checkpoint {path} does not exist")
+    raise ConfigError(
+        f"no checkpoint file {name!r} and no shipped model of that name (shipped: {names}; "
+        f"list them with `pfnet models`)"
+    )
+
+
+def describe(path: Path) -> str:
+    """How outputs name the model: ``shipped:NAME`` or the file's absolute path."""
+    if path.parent.resolve() == WEIGHTS_DIR.resolve() and path.name.endswith(SUFFIX):
+        return f"shipped:{path.name[: -len(SUFFIX)]}"
+    return str(path.resolve())
+
+
+def write_shipped(
+    checkpoint: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    card: dict[str, Any] | None = None,
+) -> Path:
+    """Write a training checkpoint's generator as a model file (float tensors as float16).
+
+    Args:
+        checkpoint: ``best.pt`` or ``last.pt`` of ``pfnet train``.
+        out: The ``.safetensors`` file to write (atomically).
+        card: The model card to store (data, recipe, metrics), JSON-serialisable.
+    """
+    import torch
+    from safetensors.torch import save_file
+
+    from pfnet.checkpoint import read_checkpoint
+    from pfnet.io import atomic_path
+
+    out = Path(out)
+    if not out.name.endswith(SUFFIX):
+        raise ConfigError(f"a model file must end in {SUFFIX}, got {out}")
+    state = read_checkpoint(checkpoint)
+    tensors = {
+        key: (value.half() if value.is_floating_point() else value).contiguous()
+        for key, value in state["model"].items()
+        if isinstance(value, torch.Tensor)
+    }
+    metadata = {
+        "format": FORMAT,
+        "version": VERSION,
+        "config": json.dumps(state["config"]),
+        "card": json.dumps(card or {}),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        save_file(tensors, str(tmp), metadata=metadata)
+    return out
+
+
+def load_weights(path: str | os.PathLike[str], device: str = "cpu") -> dict[str, Any]:
+    """The tensors of a model file as torch tensors on ``device``."""
+    from safetensors.torch import load_file
+
+    try:
+        return load_file(str(path), device=str(device))
+    except Exception as err:  # corrupt or truncated file
+        raise DataError(f"model file {path} cannot be read: {err}") from None

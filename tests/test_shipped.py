@@ -1,0 +1,133 @@
+"""Shipped models: the model file format, names as --checkpoint, `pfnet models`, and the
+default model that `complete` and `predict` use with no --checkpoint."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import pfnet.shipped  # noqa: E402
+from pfnet.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+from pfnet.cli import main  # noqa: E402
+from pfnet.errors import ConfigError, DataError  # noqa: E402
+from pfnet.io import read_point_cloud, write_ply  # noqa: E402
+from pfnet.models import build_model  # noqa: E402
+from pfnet.shipped import (  # noqa: E402
+    DEFAULT_MODEL,
+    read_metadata,
+    resolve_checkpoint,
+    shipped_models,
+    write_shipped,
+)
+from pfnet.training.config import preset_config  # noqa: E402
+
+CARD = {"summary": "a test model", "test": {"data": "nothing", "cd_l2": 1.5, "f_score": 0.25}}
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    config = preset_config("small").replace(n_points=512, width=0.125)
+    torch.manual_seed(0)
+    model = build_model(config)
+    model.train()
+    with torch.no_grad():  # give BatchNorm non-trivial running statistics
+        model(torch.randn(8, 384, 3))
+    path = tmp_path_factory.mktemp("ckpt") / "best.pt"
+    save_checkpoint(path, {"config": config.to_dict(), "model": model.state_dict()})
+    return path
+
+
+@pytest.fixture
+def weights_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, checkpoint: Path) -> Path:
+    """A weights folder holding the test model as ``tiny`` and as the default model."""
+    folder = tmp_path / "weights"
+    monkeypatch.setattr(pfnet.shipped, "WEIGHTS_DIR", folder)
+    write_shipped(checkpoint, folder / "tiny.safetensors", card=CARD)
+    write_shipped(checkpoint, folder / f"{DEFAULT_MODEL}.safetensors", card=CARD)
+    return folder
+
+
+def test_model_file_round_trip_matches_the_checkpoint_within_float16(
+    tmp_path: Path, checkpoint: Path
+) -> None:
+    path = write_shipped(checkpoint, tmp_path / "m.safetensors", card=CARD)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    config, card = read_metadata(path)
+    assert card == CARD and config["width"] == 0.125
+    shipped, _ = load_checkpoint(path)
+    original, _ = load_checkpoint(checkpoint)
+    assert all(p.dtype == torch.float32 for p in shipped.parameters())
+    assert not shipped.training
+    x = torch.rand(4, 384, 3) - 0.5
+    with torch.no_grad():
+        a, b = shipped(x).detail, original(x).detail
+    assert a.shape == (4, 128, 3)
+    # float16 weights: relative error 2**-11 per weight; coordinates are O(1)
+    assert torch.allclose(a, b, atol=2e-3), (a - b).abs().max()
+    assert not torch.equal(a, b)  # the weights really were stored as float16
+    assert path.stat().st_size < 0.6 * checkpoint.stat().st_size
+
+
+def test_names_resolve_to_shipped_files_and_paths_win(weights_dir: Path, tmp_path: Path) -> None:
+    assert resolve_checkpoint("tiny") == weights_dir / "tiny.safetensors"
+    assert resolve_checkpoint(None) == weights_dir / f"{DEFAULT_MODEL}.safetensors"
+    local = tmp_path / "tiny"  # a file of the same name in the working folder wins
+    local.write_bytes(b"")
+    assert resolve_checkpoint(str(local)) == local
+    assert pfnet.shipped.describe(resolve_checkpoint("tiny")) == "shipped:tiny"
+    assert [m.name for m in shipped_models()] == sorted(["tiny", DEFAULT_MODEL])
+
+
+def test_unknown_names_and_bad_files_are_refused_by_name(weights_dir: Path, tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"no checkpoint file 'nope' and no shipped model.*tiny"):
+        resolve_checkpoint("nope")
+    with pytest.raises(ConfigError, match=r"checkpoint .*runs/best.pt does not exist"):
+        resolve_checkpoint(tmp_path / "runs" / "best.pt")
+    with pytest.raises(ConfigError, match="is not a file"):
+        resolve_checkpoint(tmp_path)
+    garbage = tmp_path / "garbage.safetensors"
+    garbage.write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{not json at all")
+    with pytest.raises(DataError, match="garbage.safetensors cannot be read"):
+        load_checkpoint(garbage)
+    from safetensors.numpy import save_file
+
+    foreign = tmp_path / "foreign.safetensors"
+    save_file({"w": np.zeros(3, np.float32)}, str(foreign))
+    with pytest.raises(DataError, match="foreign.safetensors is not a pfnet model file"):
+        load_checkpoint(foreign)
+    with pytest.raises(ConfigError, match="must end in .safetensors"):
+        write_shipped(weights_dir / "tiny.safetensors", tmp_path / "model.bin")
+
+
+def test_pfnet_models_lists_the_shipped_models(weights_dir: Path, capsys) -> None:
+    assert main(["models"]) == 0
+    out = capsys.readouterr().out
+    assert f"{DEFAULT_MODEL}  (default)" in out and "tiny\n" in out
+    assert "a test model" in out and "x1000 1.50, F-score@0.01 0.250" in out
+    assert main(["models", "--json"]) == 0
+    cards = json.loads(capsys.readouterr().out)
+    assert [c["default"] for c in cards] == [
+        name == DEFAULT_MODEL for name in sorted(["tiny", DEFAULT_MODEL])
+    ]
+
+
+def test_complete_and_predict_use_the_default_model_without_checkpoint(
+    weights_dir: Path, tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    scan = tmp_path / "scan.ply"
+    rng = np.random.default_rng(0)
+    write_ply(scan, rng.normal(size=(700, 3)).astype(np.float32))
+    assert main(["complete", str(scan), "--out", str(tmp_path / "done"), "--device", "cpu"]) == 0
+    assert read_point_cloud(tmp_path / "done" / "scan_missing.ply").shape == (128, 3)
+    pred = tmp_path / "pred"
+    assert (
+        main(["predict", "--data", str(tiny_dataset), "--out", str(pred), "--device", "cpu"]) == 0
+    )
+    info = json.loads((pred / "predictions.json").read_text())
+    assert info["checkpoint"] == f"shipped:{DEFAULT_MODEL}"
+    assert info["n_samples"] == 12
