@@ -347,6 +347,11 @@ impl SplitMix64 {
     }
 }
 
+/// The most regions one crop may remove: far more than any crop needs (each region takes at
+/// least one point), and a bound on the centres' memory (a request for 2^61 regions panicked
+/// on the allocation before this existed).
+pub const MAX_REGIONS: usize = 1 << 16;
+
 /// The region centres a seeded random crop uses (`stream` separates the clouds of a batch).
 pub fn random_centres(
     seed: u64,
@@ -354,10 +359,10 @@ pub fn random_centres(
     n_regions: usize,
     directions: Directions,
 ) -> Result<Vec<[f64; 3]>> {
-    if n_regions == 0 {
+    if n_regions == 0 || n_regions > MAX_REGIONS {
         return Err(GeometryError::out_of_range(
             "n_regions",
-            "must be at least 1, got 0",
+            format!("must be in [1, {MAX_REGIONS}], got {n_regions}"),
         ));
     }
     let mut rng = SplitMix64(seed ^ stream.wrapping_mul(0xD1B5_4A32_D192_ED03));

@@ -13,6 +13,12 @@ pub enum GeometryError {
         batch: usize,
         point: usize,
     },
+    /// A coordinate so large that squared distances would overflow float32.
+    Huge {
+        arg: &'static str,
+        batch: usize,
+        point: usize,
+    },
     /// A count or index outside its allowed range.
     OutOfRange { arg: &'static str, message: String },
     /// Two arguments whose sizes do not agree.
@@ -38,6 +44,11 @@ impl fmt::Display for GeometryError {
                 f,
                 "{arg} contains NaN or infinite coordinates (first at batch {batch}, point {point})"
             ),
+            GeometryError::Huge { arg, batch, point } => write!(
+                f,
+                "{arg} has a coordinate beyond ±{MAX_COORDINATE:e} (first at batch {batch}, \
+                 point {point}): squared distances would overflow float32; scale the cloud down"
+            ),
             GeometryError::OutOfRange { arg, message } => write!(f, "{arg} {message}"),
             GeometryError::Mismatch { message } => write!(f, "{message}"),
         }
@@ -48,17 +59,28 @@ impl std::error::Error for GeometryError {}
 
 pub type Result<T> = std::result::Result<T, GeometryError>;
 
-/// Reject clouds with NaN or infinite coordinates; `batch` is only used in the message.
+/// The largest coordinate magnitude accepted. Two points within ±1e18 are at most
+/// 2·√3·1e18 apart, so a squared distance stays below 1.2e37, under float32's 3.4e38: every
+/// kernel computes exactly what it would for smaller clouds instead of returning `inf` or a
+/// meaningless sample (a cloud ×1e20 made farthest point sampling return index 0 four times).
+pub const MAX_COORDINATE: f64 = 1e18;
+
+/// Reject clouds with NaN, infinite or huge coordinates; `batch` is only used in the message.
 pub fn check_finite<T: Copy + Into<f64>>(
     arg: &'static str,
     batch: usize,
     points: &[[T; 3]],
 ) -> Result<()> {
-    match points
-        .iter()
-        .position(|p| !p.iter().all(|&c| c.into().is_finite()))
-    {
-        Some(point) => Err(GeometryError::NonFinite { arg, batch, point }),
-        None => Ok(()),
+    for (point, p) in points.iter().enumerate() {
+        for &c in p {
+            let c: f64 = c.into();
+            if !c.is_finite() {
+                return Err(GeometryError::NonFinite { arg, batch, point });
+            }
+            if c.abs() > MAX_COORDINATE {
+                return Err(GeometryError::Huge { arg, batch, point });
+            }
+        }
     }
+    Ok(())
 }

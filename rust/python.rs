@@ -278,12 +278,13 @@ macro_rules! crop_functions {
 crop_functions!(crop_count_f32, crop_radius_f32, crop_multi_f32, f32);
 crop_functions!(crop_count_f64, crop_radius_f64, crop_multi_f64, f64);
 
-/// Put the batch index into a non-finite error raised inside a batch loop.
+/// Put the batch index into a coordinate error raised inside a batch loop.
 fn with_batch(err: GeometryError, batch: usize) -> GeometryError {
     match err {
         GeometryError::NonFinite { arg, point, .. } => {
             GeometryError::NonFinite { arg, batch, point }
         }
+        GeometryError::Huge { arg, point, .. } => GeometryError::Huge { arg, batch, point },
         other => other,
     }
 }
@@ -306,7 +307,14 @@ fn random_centres<'py>(
             )))
         }
     };
-    let mut flat = Vec::with_capacity(batch * n_regions * 3);
+    if n_regions == 0 || n_regions > crop::MAX_REGIONS {
+        return Err(GeometryError::out_of_range(
+            "n_regions",
+            format!("must be in [1, {}], got {n_regions}", crop::MAX_REGIONS),
+        )
+        .into());
+    }
+    let mut flat = Vec::with_capacity(batch.saturating_mul(n_regions * 3));
     for stream in 0..batch {
         let centres = crop::random_centres(seed, stream as u64, n_regions, directions)?;
         flat.extend(centres.into_iter().flatten());
@@ -327,6 +335,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(crop_multi_f32, m)?)?;
     m.add_function(wrap_pyfunction!(crop_multi_f64, m)?)?;
     m.add_function(wrap_pyfunction!(random_centres, m)?)?;
+    m.add("MAX_REGIONS", crop::MAX_REGIONS)?;
+    m.add("MAX_COORDINATE", crate::error::MAX_COORDINATE)?;
     let viewpoints: Vec<f64> = crop::VIEWPOINTS.iter().flatten().copied().collect();
     m.add(
         "VIEWPOINTS",

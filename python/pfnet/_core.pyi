@@ -4,6 +4,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 VIEWPOINTS: NDArray[np.float64]
+MAX_REGIONS: int
+MAX_COORDINATE: float
 
 def farthest_point_sample(
     points: NDArray[np.float32], n_samples: int, start_index: int

@@ -34,6 +34,11 @@ VIEWPOINTS: NDArray[np.float32] = _core.VIEWPOINTS.astype(np.float32)
 ``(1,0,0), (0,0,1), (1,0,1), (-1,0,0), (-1,1,0)``."""
 VIEWPOINTS.flags.writeable = False
 
+MAX_REGIONS: int = _core.MAX_REGIONS
+"""The most regions :func:`random_crop` may remove at once."""
+MAX_COORDINATE: float = _core.MAX_COORDINATE
+"""The largest coordinate magnitude the kernels accept (squared distances stay finite)."""
+
 
 def _as_cloud(
     name: str, value: ArrayLike, dtypes: tuple[type, ...] = (np.float32,)
@@ -285,11 +290,10 @@ def random_crop(
         raise ValueError(f"seed must be a non-negative integer, got {seed}")
     if directions not in ("viewpoints", "sphere"):
         raise ValueError(f"directions must be 'viewpoints' or 'sphere', got {directions!r}")
-    limit = 5 if directions == "viewpoints" else None
-    if n_regions < 1 or (limit is not None and n_regions > limit):
-        bound = f"1..{limit}" if limit else ">= 1"
+    limit = 5 if directions == "viewpoints" else MAX_REGIONS
+    if not 1 <= n_regions <= limit:
         raise ValueError(
-            f"n_regions must be in {bound} for directions={directions!r}, got {n_regions}"
+            f"n_regions must be in 1..{limit} for directions={directions!r}, got {n_regions}"
         )
     batched = np.ndim(points) == 3
     batch = np.shape(points)[0] if batched else 1

@@ -1,0 +1,80 @@
+"""Hostile input to the Rust core: huge counts and coordinates give a clear ValueError (never a
+panic, an abort or a silent ``inf``), and duplicate points give exact answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pfnet import _core
+from pfnet.geometry import (
+    MAX_COORDINATE,
+    MAX_REGIONS,
+    chamfer,
+    farthest_point_sample,
+    nearest_neighbors,
+    random_crop,
+)
+
+
+def _cloud(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-1, 1, size=(n, 3)).astype(np.float32)
+
+
+@pytest.mark.parametrize("n_regions", [MAX_REGIONS + 1, 10**9, 2**40, 2**61])
+def test_huge_region_counts_are_refused_before_any_allocation(n_regions: int) -> None:
+    with pytest.raises(ValueError, match=rf"n_regions must be in 1\.\.{MAX_REGIONS}"):
+        random_crop(_cloud(16), 4, seed=0, n_regions=n_regions, directions="sphere")
+    # the core checks too, for callers that skip pfnet.geometry
+    with pytest.raises(ValueError, match="n_regions must be in"):
+        _core.random_centres(0, 2, n_regions, "sphere")
+
+
+def test_the_largest_region_count_works() -> None:
+    partial, missing = random_crop(
+        _cloud(64), 8, seed=1, n_regions=MAX_REGIONS, directions="sphere"
+    )
+    assert partial.shape == (56, 3) and missing.shape == (8, 3)
+
+
+@pytest.mark.parametrize("scale", [1e19, 1e20, 1e30, 3e38])
+def test_coordinates_whose_squares_overflow_are_refused_by_every_kernel(scale: float) -> None:
+    huge = (_cloud(32) * np.float32(scale)).astype(np.float32)
+    assert np.isfinite(huge).all() and np.abs(huge).max() > MAX_COORDINATE
+    small = _cloud(32, 1)
+    for call in (
+        lambda: farthest_point_sample(huge, 4),
+        lambda: nearest_neighbors(huge, small),
+        lambda: nearest_neighbors(small, huge),
+        lambda: chamfer(small, huge),
+        lambda: random_crop(huge, 4, seed=0),
+    ):
+        with pytest.raises(ValueError, match=r"beyond ±1e18.*scale the cloud down"):
+            call()
+
+
+def test_large_but_accepted_coordinates_give_the_scaled_answers() -> None:
+    points = _cloud(256)
+    scaled = points * np.float32(1e17)
+    assert np.array_equal(farthest_point_sample(scaled, 16), farthest_point_sample(points, 16))
+    d_small, i_small = nearest_neighbors(points[:50], points[50:])
+    d_large, i_large = nearest_neighbors(scaled[:50], scaled[50:])
+    assert np.isfinite(d_large).all()
+    assert np.array_equal(i_small, i_large)
+    np.testing.assert_allclose(d_large, d_small * 1e34, rtol=1e-5)
+
+
+def test_duplicate_points_give_exact_distances_and_first_indices() -> None:
+    rng = np.random.default_rng(2)
+    centres = _cloud(20, 3)
+    clustered = centres[rng.integers(0, 20, size=20_000)]  # 1,000 copies of each on average
+    identical = np.repeat(centres[:1], 20_000, axis=0)
+    query = _cloud(500, 4)
+    for reference in (clustered, identical):
+        distances, index = nearest_neighbors(query, reference)
+        brute = ((query[:, None, :] - reference[None, :, :]) ** 2).sum(-1)
+        np.testing.assert_allclose(distances, brute.min(axis=1), rtol=1e-6, atol=1e-7)
+        # every index names the first copy of its point
+        first = {tuple(p): i for i, p in reversed(list(enumerate(reference.tolist())))}
+        assert all(first[tuple(reference[i].tolist())] == i for i in index)
+    assert chamfer(identical, identical) == (0.0, 0.0)
