@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--milestones", type=float, nargs="*", default=[0.5, 0.75])
     parser.add_argument("--target", type=float, default=1.0, help="val CD-L2 ×1000 to reach")
+    parser.add_argument(
+        "--adversarial-weight", type=float, default=None, help="λ_adv (default: the preset's)"
+    )
     parser.add_argument("--device", default="auto")
     args = parser.parse_args(argv)
 
@@ -81,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         steps=args.steps,
         lr_milestones=tuple(args.milestones),
     )
+    if args.adversarial_weight is not None:
+        config = config.replace(adversarial_weight=args.adversarial_weight)
     run = args.out / "run"
     resume = (run / "last.pt").is_file()
     train(config, data, run, device=args.device, resume=resume, progress=sys.stderr.isatty())
@@ -93,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         "lr": config.lr,
         "steps": rows[-1]["step"],
         "milestones": list(config.lr_milestones),
+        "adversarial_weight": config.adversarial_weight,
         # cd_detail is loss_scale · (Pred→GT + GT→Pred); ×1000 / loss_scale gives CD-L2 ×1000.
         "train_cd_l2_last_tenth": float(
             np.mean([r["cd_detail"] for r in tail]) * 1000 / config.loss_scale

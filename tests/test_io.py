@@ -232,7 +232,7 @@ def test_pcd_binary_compressed_long_back_reference(tmp_path):
     head = _pcd("x y z", "4 4 4", "F F F", "1 1 1", 3, "binary_compressed")
     path = tmp_path / "z.pcd"
     path.write_bytes(head + struct.pack("<II", len(payload), 36) + payload)
-    with pytest.raises(DataError, match=r"z\.pcd: corrupt PCD binary_compressed data \(40 bytes"):
+    with pytest.raises(DataError, match=r"z\.pcd: corrupt .* \(expands beyond the declared 36"):
         read_point_cloud(path)
     payload = bytes([0, 0, 7 << 5, 26, 0])  # 1 + 35 = 36 bytes
     path.write_bytes(head + struct.pack("<II", len(payload), 36) + payload)
@@ -331,7 +331,7 @@ def test_npy_pickled_object_and_garbage(tmp_path):
     path = tmp_path / "cut.npy"
     np.save(path, np.ones((100, 3)))
     path.write_bytes(path.read_bytes()[:200])
-    with pytest.raises(DataError, match=r"cut\.npy: not a valid \.npy array file"):
+    with pytest.raises(DataError, match=r"cut\.npy: the \.npy header declares shape \(100, 3\)"):
         read_point_cloud(path)
 
 
@@ -400,7 +400,7 @@ _GOOD_PROPS = ["float x", "float y", "float z"]
         ),
         (
             _ply_header("binary_big_endian", 2, [*_GOOD_PROPS, "list uchar int ids"]) + b"\0" * 13,
-            "truncated PLY data in element 'vertex'",
+            "element 'vertex' declares 2 rows of at least 13 bytes, 13 bytes left",
         ),
     ],
 )
@@ -439,7 +439,7 @@ def test_bad_ply(tmp_path, data, message):
             _pcd("x y z", "4 4 4", "F F F", "1 1 1", 1, "binary_compressed")
             + struct.pack("<II", 5, 4)
             + bytes([3, 0, 0, 0, 0]),
-            "shorter than the FIELDS declare",
+            "declares 4 bytes, the header's 1 points need 12",
         ),
         (
             b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS many\nDATA ascii\n",

@@ -77,7 +77,7 @@ def test_gallery_errors(tmp_path, sphere):
         render_gallery(tmp_path / "g.png", [])
     with pytest.raises(ConfigError, match="'empty' has no point cloud"):
         render_gallery(tmp_path / "g.png", [RenderSample("empty")])
-    with pytest.raises(ConfigError, match="--views must be at least 1"):
+    with pytest.raises(ConfigError, match=r"--views must be in \[1, 12\]"):
         render_gallery(tmp_path / "g.png", [RenderSample("s", sphere)], views=0)
     bad = sphere.copy()
     bad[0, 0] = np.nan

@@ -53,6 +53,9 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
             f"checkpoint {path} has format version {state.get('version')}; "
             f"this pfnet reads version {VERSION}"
         )
+    for key, kind in (("config", dict), ("model", dict)):
+        if not isinstance(state.get(key), kind):
+            raise DataError(f"checkpoint {path} has no {key!r} table: it is damaged or foreign")
     return state
 
 
@@ -91,4 +94,10 @@ def load_checkpoint(
         model.load_state_dict(weights)  # copies float16 model files into float32 parameters
     except RuntimeError as err:
         raise DataError(f"checkpoint {path} does not match its model: {err}") from None
+    broken = [name for name, value in model.state_dict().items() if not value.isfinite().all()]
+    if broken:  # a diverged run's weights: every completion would be NaN
+        raise DataError(
+            f"checkpoint {path} holds NaN or infinite weights ({len(broken)} tensors, e.g. "
+            f"{broken[0]}): the run diverged; use an earlier checkpoint"
+        )
     return model.to(device).eval(), config

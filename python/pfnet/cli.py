@@ -60,8 +60,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"pfnet {args.command}: interrupted", file=sys.stderr)
         return 130
-    except (PfnetError, ValueError, TypeError, FileNotFoundError, NotADirectoryError) as err:
+    except (PfnetError, ValueError, TypeError) as err:
         print(f"pfnet {args.command}: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # a full disk, a permission, a path that vanished: not a bug
+        where = f": {err.filename}" if err.filename else ""
+        print(f"pfnet {args.command}: error: {err.strerror or err}{where}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print(f"pfnet {args.command}: error: out of memory", file=sys.stderr)
         return 1
 
 

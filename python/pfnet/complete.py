@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from pfnet.checkpoint import load_checkpoint
-    from pfnet.io import read_point_cloud
+    from pfnet.io import read_point_cloud, refuse_input_overwrite
     from pfnet.predict import resolve_device
 
     if args.batch_size < 1:
@@ -168,7 +168,13 @@ def run(args: argparse.Namespace) -> int:
                 f"{path.stem}_completed.ply; rename one or complete them separately"
             )
         stems[path.stem] = path
+    if args.out.exists() and not args.out.is_dir():
+        raise ConfigError(f"--out {args.out} is a file; name a folder for the outputs")
     inputs = list(dict.fromkeys(args.inputs))
+    # `complete a.ply a_missing.ply --out .` would replace the user's a_missing.ply.
+    refuse_input_overwrite(
+        [output for path in inputs for output in output_paths(args.out, path)], inputs
+    )
     device = resolve_device(args.device)
     model, _ = load_checkpoint(args.checkpoint, device=device)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -167,8 +167,8 @@ def run(args: argparse.Namespace) -> int:
     from pfnet.training import train
     from pfnet.training.config import preset_config
 
-    if args.minutes <= 0:
-        raise ConfigError(f"--minutes must be positive, got {args.minutes}")
+    if not (math.isfinite(args.minutes) and 0 < args.minutes <= 7 * 24 * 60):
+        raise ConfigError(f"--minutes must be positive and at most a week, got {args.minutes}")
     if args.epochs is not None and args.epochs < 1:
         raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
     device = resolve_device(args.device)

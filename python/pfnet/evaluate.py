@@ -70,23 +70,33 @@ class Evaluation:
     n_samples: int = 0
 
 
-def find_prediction_files(pred_dir: Path) -> dict[str, Path]:
-    """Map ``<category>/<name>`` to its prediction file (first suffix in PREDICTION_SUFFIXES)."""
+def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, Path]:
+    """Map ``<category>/<name>`` to its prediction file (first suffix in PREDICTION_SUFFIXES).
+
+    A category entry that cannot be listed (a symlink loop, no permission) is named on
+    stderr (unless ``quiet``) and skipped; its samples then count as missing.
+    """
     rank = {s: i for i, s in enumerate(PREDICTION_SUFFIXES)}
     found: dict[str, tuple[int, Path]] = {}
     with os.scandir(pred_dir) as categories:
         for cat in categories:
-            if not cat.is_dir() or cat.name.startswith("."):
+            try:
+                if not cat.is_dir() or cat.name.startswith("."):
+                    continue
+                with os.scandir(cat.path) as listing:
+                    entries = list(listing)
+            except OSError as err:
+                if not quiet:
+                    print(f"skipped {cat.path}: {err.strerror or err}", file=sys.stderr)
                 continue
-            with os.scandir(cat.path) as files:
-                for entry in files:
-                    stem, suffix = os.path.splitext(entry.name)
-                    suffix = suffix.lower()
-                    if suffix not in rank or entry.name.startswith("."):
-                        continue
-                    key = f"{cat.name}/{stem}"
-                    if key not in found or rank[suffix] < found[key][0]:
-                        found[key] = (rank[suffix], Path(entry.path))
+            for entry in entries:
+                stem, suffix = os.path.splitext(entry.name)
+                suffix = suffix.lower()
+                if suffix not in rank or entry.name.startswith("."):
+                    continue
+                key = f"{cat.name}/{stem}"
+                if key not in found or rank[suffix] < found[key][0]:
+                    found[key] = (rank[suffix], Path(entry.path))
     return {key: path for key, (_, path) in found.items()}
 
 
@@ -336,8 +346,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--missing-ratio",
         type=float,
-        default=0.25,
-        help="fraction of points the test protocol removes (default: 0.25)",
+        default=None,
+        help="fraction of points the test protocol removes (default: the one recorded in "
+        "PRED/predictions.json, else 0.25)",
+    )
+    parser.add_argument(
+        "--ignore-recorded-protocol",
+        action="store_true",
+        help="score even if --split/--missing-ratio differ from PRED/predictions.json",
     )
     parser.add_argument(
         "--region", choices=REGIONS, default="missing", help="region scored (default: missing)"
@@ -363,10 +379,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
+    from pfnet.io import refuse_input_overwrite
     from pfnet.metrics import summarize
 
     if args.gallery is not None and args.gallery_count < 1:
         raise ConfigError(f"evaluate: --gallery-count must be at least 1, got {args.gallery_count}")
+    args.missing_ratio = recorded_protocol(args)
+    outputs = {flag: getattr(args, flag) for flag in ("json", "csv", "gallery")}
+    if any(outputs.values()) and Path(args.pred).is_dir():
+        # before scoring: a bad output path must not waste the run or replace an input
+        predictions = find_prediction_files(args.pred, quiet=True).values()
+        inputs = [*predictions, Path(args.pred) / "predictions.json"]
+        inputs += [Path(args.data) / name for name in ("manifest.json", f"{args.split}.npz")]
+        for flag, output in outputs.items():
+            if output is not None:
+                refuse_input_overwrite([output], inputs, flag=f"--{flag}")
     evaluation = evaluate_predictions(
         args.pred,
         args.data,
@@ -409,6 +436,42 @@ def run(args: argparse.Namespace) -> int:
         )
         return 2
     return 0
+
+
+def recorded_protocol(args: argparse.Namespace) -> float:
+    """The missing ratio to score with, checked against ``PRED/predictions.json`` if present.
+
+    Predictions made by ``pfnet predict`` record their split and crop; scoring them with
+    another crop compares each prediction with the wrong missing region, silently.
+
+    Raises:
+        ConfigError: ``--split`` or ``--missing-ratio`` differs from the record (unless
+            ``--ignore-recorded-protocol``), or the record cannot be read.
+    """
+    record = Path(args.pred) / "predictions.json"
+    asked = args.missing_ratio
+    if not record.is_file():
+        return 0.25 if asked is None else asked
+    try:
+        info = json.loads(record.read_text(encoding="utf-8"))
+        made_ratio = float(info["protocol"]["missing_ratio"])
+        made_split = str(info["split"])
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ConfigError(f"evaluate: cannot read {record}: {err}") from None
+    ratio = made_ratio if asked is None else asked
+    if args.ignore_recorded_protocol:
+        return ratio
+    if made_split != args.split:
+        raise ConfigError(
+            f"evaluate: {args.pred} holds predictions of the {made_split!r} split "
+            f"({record}); pass --split {made_split}, or --ignore-recorded-protocol"
+        )
+    if abs(ratio - made_ratio) > 1e-9:
+        raise ConfigError(
+            f"evaluate: {args.pred} was predicted with {made_ratio:g} missing ({record}), "
+            f"not {ratio:g}; drop --missing-ratio, or pass --ignore-recorded-protocol"
+        )
+    return ratio
 
 
 def _report_problems(evaluation: Evaluation, limit: int = 20) -> bool:

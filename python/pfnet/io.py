@@ -26,12 +26,12 @@ import contextlib
 import os
 import re
 import secrets
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-from pfnet.errors import DataError
+from pfnet.errors import ConfigError, DataError
 
 __all__ = [
     "POINT_CLOUD_SUFFIXES",
@@ -62,6 +62,58 @@ _PLY_TYPES: dict[str, str] = {
     "double": "f8",
     "float64": "f8",
 }
+
+
+def refuse_overlap(
+    out: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]], *, flag: str = "--out"
+) -> None:
+    """Refuse an output location that is, contains or lies inside one of ``inputs``.
+
+    Every command checks this before it changes anything: writing into (or replacing) a
+    folder that holds the inputs could overwrite or delete them. Symbolic links are
+    resolved, so another spelling of the same place is caught too.
+
+    Raises:
+        ConfigError: Naming the flag, the output and the input it overlaps.
+    """
+    target = Path(out).resolve()
+    for item in inputs:
+        source = Path(item).resolve()
+        if target == source:
+            relation = "is"
+        elif source.is_relative_to(target):
+            relation = "contains"
+        elif target.is_relative_to(source):
+            relation = "is inside"
+        else:
+            continue
+        raise ConfigError(
+            f"{flag} {out} {relation} the input {item}; "
+            "write the output to a place apart from the inputs"
+        )
+
+
+def refuse_input_overwrite(
+    outputs: Iterable[str | os.PathLike[str]],
+    inputs: Iterable[str | os.PathLike[str]],
+    *,
+    flag: str = "--out",
+) -> None:
+    """Refuse output files that are input files, or existing folders, before any work.
+
+    Raises:
+        ConfigError: Naming the output and the input it would replace.
+    """
+    sources = {Path(item).resolve(): item for item in inputs}
+    for output in outputs:
+        path = Path(output)
+        if path.is_dir():
+            raise ConfigError(f"{flag}: {path} is a folder; name a file to write")
+        if path.resolve() in sources:
+            raise ConfigError(
+                f"{flag}: writing {path} would overwrite the input "
+                f"{sources[path.resolve()]}; choose another output"
+            )
 
 
 @contextlib.contextmanager
@@ -179,6 +231,8 @@ def read_point_cloud(path: str | os.PathLike[str]) -> np.ndarray:
         raise
     except OSError as err:
         raise DataError(f"{file}: cannot read: {err.strerror or err}") from err
+    except MemoryError:
+        raise DataError(f"{file}: too large to load into memory") from None
     points = np.ascontiguousarray(points, dtype=np.float32)
     if points.shape[0] == 0:
         raise DataError(f"{file}: the file holds no points")
@@ -199,7 +253,36 @@ def _first_three_columns(file: Path, array: np.ndarray) -> np.ndarray:
     return array[:, :3]
 
 
+def check_npy_header(name: str, fh, available: int) -> None:
+    """Refuse a ``.npy`` stream whose header claims more data than ``available`` bytes.
+
+    Reads the header from ``fh`` (positioned at the start) before numpy allocates anything:
+    a forged header claiming 10^12 points made ``np.load`` fail with ``MemoryError``.
+
+    Raises:
+        DataError: Naming ``name``, the declared shape and the bytes there are.
+    """
+    from numpy.lib import format as npy_format
+
+    try:
+        version = npy_format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = npy_format.read_array_header_1_0(fh)
+        else:
+            shape, _, dtype = npy_format.read_array_header_2_0(fh)
+    except (ValueError, EOFError) as err:
+        raise DataError(f"{name}: not a valid .npy array file ({err})") from None
+    needed = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if needed > available - fh.tell():
+        raise DataError(
+            f"{name}: the .npy header declares shape {shape} ({needed} bytes) but the file "
+            f"holds {max(available - fh.tell(), 0)} bytes of data"
+        )
+
+
 def _read_npy(file: Path) -> np.ndarray:
+    with open(file, "rb") as fh:
+        check_npy_header(str(file), fh, file.stat().st_size)
     try:
         array = np.load(file, allow_pickle=False)
     except ValueError as err:  # object arrays, bad headers, truncated data
@@ -409,7 +492,15 @@ def _read_ply_binary(file, body: bytes, elements, vertex_index: int, endian: str
                 return np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float64)
             offset += size
             continue
-        # Elements with list properties have variable-size rows: walk them one by one.
+        # Elements with list properties have variable-size rows: walk them one by one. Every
+        # row takes at least its scalars and list lengths, so a count the bytes left cannot
+        # hold is refused before the walk (a forged count would otherwise loop for hours).
+        least = sum(np.dtype(p[2] if p[2] is not None else p[1]).itemsize for p in props)
+        if count * least > len(body) - offset:
+            raise DataError(
+                f"{file}: truncated PLY data: element {name!r} declares {count} rows of at "
+                f"least {least} bytes, {max(len(body) - offset, 0)} bytes left"
+            )
         coords = np.empty((count, 3), dtype=np.float64) if is_vertex else None
         for i in range(count):
             row: dict[str, float] = {}
@@ -419,6 +510,8 @@ def _read_ply_binary(file, body: bytes, elements, vertex_index: int, endian: str
                     if offset + ldt.itemsize > len(body):
                         raise DataError(f"{file}: truncated PLY data in element {name!r}")
                     n = int(np.frombuffer(body, ldt, 1, offset)[0])
+                    if n < 0:
+                        raise DataError(f"{file}: negative list length {n} in element {name!r}")
                     offset += ldt.itemsize + n * np.dtype(ptype).itemsize
                 else:
                     pdt = np.dtype(endian + ptype)
@@ -532,13 +625,16 @@ def _read_pcd_compressed(file, body, dtypes, counts, n_points, columns) -> np.nd
     compressed, raw = (int(v) for v in np.frombuffer(body, "<u4", 2))
     if len(body) < 8 + compressed:
         raise DataError(f"{file}: truncated PCD binary_compressed data")
-    data = _lzf_decompress(file, body[8 : 8 + compressed], raw)
     # binary_compressed stores the data field by field (all x, then all y, ...).
     offsets = np.cumsum(
         [0] + [np.dtype(d).itemsize * c * n_points for d, c in zip(dtypes, counts, strict=True)]
     )
-    if offsets[-1] > len(data):
-        raise DataError(f"{file}: PCD binary_compressed data is shorter than the FIELDS declare")
+    if raw != offsets[-1]:  # checked before decompressing anything
+        raise DataError(
+            f"{file}: PCD binary_compressed data declares {raw} bytes, the header's "
+            f"{n_points} points need {int(offsets[-1])}"
+        )
+    data = _lzf_decompress(file, body[8 : 8 + compressed], raw)
     out = []
     for c in columns:
         block = np.frombuffer(data, dtypes[c], n_points * counts[c], int(offsets[c]))
@@ -566,8 +662,17 @@ def _lzf_decompress(file: Path, src: bytes, size: int) -> bytes:
                 i += 1
                 if ref < 0:
                     raise IndexError
-                for k in range(length + 2):
-                    out.append(out[ref + k])
+                length += 2
+                if ref + length <= len(out):  # the common case: copy a slice at once
+                    out += out[ref : ref + length]
+                else:  # overlapping run: byte by byte
+                    for k in range(length):
+                        out.append(out[ref + k])
+            if len(out) > size:  # never expand beyond the declared size
+                raise DataError(
+                    f"{file}: corrupt PCD binary_compressed data (expands beyond the "
+                    f"declared {size} bytes)"
+                )
     except IndexError:
         raise DataError(f"{file}: corrupt PCD binary_compressed data") from None
     if len(out) != size:

@@ -105,11 +105,14 @@ def predict_split(
     """
     from pfnet.checkpoint import load_checkpoint
     from pfnet.data import load_split, test_protocol_crop
-    from pfnet.io import atomic_path, save_npy
+    from pfnet.io import atomic_path, refuse_overlap, save_npy
     from pfnet.shipped import describe, resolve_checkpoint
 
     device = resolve_device(device)
     checkpoint = resolve_checkpoint(checkpoint)
+    refuse_overlap(out_dir, [data_dir, checkpoint])
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir} is a file; name a folder for the predictions")
     model, config = load_checkpoint(checkpoint, device=device)
     trained_ratio = config_value(config, "missing_ratio")
     ratio = float(trained_ratio if missing_ratio is None else missing_ratio)

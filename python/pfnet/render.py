@@ -14,6 +14,7 @@ y axis is drawn vertical.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import textwrap
 from dataclasses import dataclass
@@ -121,6 +122,10 @@ def row_label(label: str, height_inches: float, fontsize: float) -> str:
     return "\n".join(lines)
 
 
+# Views per row: a figure of more is too wide to look at (and slow to draw).
+MAX_VIEWS = 12
+
+
 def render_panels(
     out: str | os.PathLike[str],
     rows: list[tuple[str, list[Panel]]],
@@ -159,8 +164,10 @@ def render_panels(
 
     if not rows:
         raise ConfigError("render: nothing to draw (no samples)")
-    if views < 1:
-        raise ConfigError(f"render: --views must be at least 1, got {views}")
+    if not 1 <= views <= MAX_VIEWS:
+        raise ConfigError(f"render: --views must be in [1, {MAX_VIEWS}], got {views}")
+    if not (math.isfinite(point_size) and 0 < point_size <= 1000):
+        raise ConfigError(f"render: --point-size must be in (0, 1000], got {point_size}")
     for label, panels in rows:
         if not panels:
             raise ConfigError(f"render: sample {label!r} has no point cloud")
@@ -266,12 +273,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet render``."""
-    from pfnet.io import read_point_cloud
+    from pfnet.io import read_point_cloud, refuse_input_overwrite
 
     if not args.files and not args.sample:
         raise ConfigError("render: give at least one FILE or --sample PARTIAL PRED GT")
     if args.out.suffix.lower() != ".png":
         raise ConfigError(f"render: --out must be a .png file, got {args.out}")
+    inputs = [*args.files, *(t for triple in args.sample for t in triple if t != "-")]
+    refuse_input_overwrite([args.out], inputs)
     samples = []
     field = {"partial": "partial", "prediction": "prediction", "ground-truth": "ground_truth"}
     for name in args.files:

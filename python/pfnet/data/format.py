@@ -50,6 +50,25 @@ SPLITS: tuple[str, ...] = ("train", "val", "test")
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
+def unsafe_component(text: str) -> str | None:
+    """Why ``text`` cannot be one file or folder name under an output folder, or None.
+
+    Categories and names become paths (``PRED/<category>/<name>.npy``), so a data set
+    holding ``..``, ``/`` or an absolute path could make a command write outside its
+    ``--out``; they are refused when a split is loaded.
+    """
+    if not text:
+        return "is empty"
+    if text in (".", ".."):
+        return "is not a name"
+    if len(text) > 200:
+        return "is longer than 200 characters"
+    bad = sorted({c for c in text if c in "/\\:" or ord(c) < 32 or ord(c) == 127})
+    if bad:
+        return f"contains {', '.join(repr(c) for c in bad)}: not allowed in a file name"
+    return None
+
+
 @dataclass(frozen=True)
 class CloudSet:
     """The shapes of one split.
@@ -80,6 +99,18 @@ class CloudSet:
                     f"{label} must be a str array of shape ({points.shape[0]},), "
                     f"got {array.dtype} {array.shape}"
                 )
+        for label, array in (("category", category), ("name", name)):
+            for value in array:
+                problem = unsafe_component(str(value))
+                if problem:
+                    raise DataError(f"{label} {str(value)!r} {problem}")
+        pairs = set(zip(category.tolist(), name.tolist(), strict=True))
+        if len(pairs) != len(name):
+            seen: set[tuple[str, str]] = set()
+            for pair in zip(category.tolist(), name.tolist(), strict=True):
+                if pair in seen:
+                    raise DataError(f"shape {pair[0]}/{pair[1]} appears twice in the split")
+                seen.add(pair)
         extra = self.extra
         if extra is not None and (
             extra.ndim != 3
@@ -177,6 +208,7 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     if not path.is_file():
         raise DataError(f"{path}: missing split file")
     try:
+        _check_members(path)
         with np.load(path, allow_pickle=False) as data:
             missing = {"points", "category", "name"} - set(data.files)
             if missing:
@@ -186,12 +218,36 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
                 arrays["extra"] = data["extra"]
     except DataError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile) as err:
-        raise DataError(f"{path}: cannot read the split: {err}") from err
+    except (OSError, ValueError, zipfile.BadZipFile, MemoryError) as err:
+        raise DataError(f"{path}: cannot read the split: {err or type(err).__name__}") from err
     try:
         return CloudSet(**arrays)
     except DataError as err:
         raise DataError(f"{path}: {err}") from err
+
+
+def _check_members(path: Path) -> None:
+    """Check every ``.npy`` member's declared size against its stored size before loading.
+
+    A member whose header claims 10^12 points would make numpy try to allocate terabytes.
+    Members are stored uncompressed by :func:`write_dataset`; a compressed member is checked
+    against its uncompressed size, which the zip directory records.
+    """
+    from pfnet.io import check_npy_header
+
+    archive_size = path.stat().st_size
+    with zipfile.ZipFile(path) as archive:
+        for info in archive.infolist():
+            if not info.filename.endswith(".npy"):
+                continue
+            # The directory's sizes are data too: bound them by the archive's real size
+            # (deflate expands at most about 1032 times).
+            if info.compress_size > archive_size:
+                raise DataError(f"{path}: member {info.filename} is larger than the archive")
+            ratio = 1 if info.compress_type == zipfile.ZIP_STORED else 1032
+            available = min(info.file_size, info.compress_size * ratio)
+            with archive.open(info) as member:
+                check_npy_header(f"{path}: member {info.filename}", member, available)
 
 
 def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
@@ -205,13 +261,26 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
         ``out`` as a Path.
 
     Raises:
-        DataError: ``out`` is a file, or a non-empty folder and ``overwrite`` is false.
+        DataError: ``out`` is a file, a non-empty folder and ``overwrite`` is false, or a
+            non-empty folder that is not a pfnet data set.
     """
     path = Path(out)
     if path.exists() and not path.is_dir():
         raise DataError(f"{path}: exists and is not a folder")
-    if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise DataError(f"{path}: already exists and is not empty (pass --overwrite to replace it)")
+    if path.is_dir() and any(path.iterdir()):
+        if not overwrite:
+            raise DataError(
+                f"{path}: already exists and is not empty (pass --overwrite to replace it)"
+            )
+        # --overwrite deletes the folder: only ever an earlier data set, never a folder of
+        # the user's (the source's parent, a home directory) named by mistake.
+        try:
+            read_manifest(path)
+        except DataError:
+            raise DataError(
+                f"{path}: is not a pfnet data set (no readable {MANIFEST_NAME}); --overwrite "
+                "only replaces a folder that pfnet prepare wrote"
+            ) from None
     return path
 
 

@@ -30,6 +30,7 @@ from pfnet.data.format import (
 from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
 from pfnet.data.sources import FORMATS, Scan, ShapeItem, load_item
 from pfnet.errors import ConfigError, DataError
+from pfnet.io import refuse_overlap
 
 __all__ = ["PrepareReport", "assign_splits", "detect_format", "prepare_dataset", "process_item"]
 
@@ -194,6 +195,10 @@ def process_item(
         return index, None, f"cannot read: {type(err).__name__}: {err}"
 
 
+# More processes than this only add start-up time and memory (each holds a mesh loader).
+MAX_WORKERS = 256
+
+
 def _default_workers() -> int:
     try:
         return len(os.sched_getaffinity(0))
@@ -262,8 +267,8 @@ def _check_arguments(
             f"test_fraction + val_fraction must be below 1 (some shapes must train), got "
             f"{test_fraction} + {val_fraction}"
         )
-    if workers is not None and (not _is_integer(workers) or workers < 1):
-        raise ConfigError(f"workers must be a positive integer, got {workers!r}")
+    if workers is not None and (not _is_integer(workers) or not 1 <= workers <= MAX_WORKERS):
+        raise ConfigError(f"workers must be an integer in [1, {MAX_WORKERS}], got {workers!r}")
 
 
 def _scan(fmt: str, source, count: int | None, strict: bool) -> Scan:
@@ -381,6 +386,8 @@ def prepare_dataset(
             f"pool must be an integer above points ({points}) and at most {MAX_POOL}, got {pool!r}"
         )
     pool = 0 if pool is None else int(pool)
+    if source is not None and str(source) != "procedural":
+        refuse_overlap(out, [source])
     out_path = check_output(out, overwrite)
     fmt = detect_format(source) if format == "auto" else format
     scan = _scan(fmt, source, count, strict)

@@ -277,6 +277,12 @@ def _is_alpha_schedule(schedule: Any, valid_start: Any) -> bool:
     )
 
 
+# The largest cloud a network may be built for: the paper's 2,048 points with room to spare,
+# and a bound a forged checkpoint config cannot get past (n_points = 10**12 made building
+# the model fail with a RuntimeError traceback).
+MAX_POINTS = 1 << 16
+
+
 def _validate(c: TrainConfig) -> None:
     """Raise :class:`ConfigError` naming the first invalid value of ``c``."""
     _require(c.model in MODEL_NAMES, "model", c.model, f"one of {', '.join(MODEL_NAMES)}")
@@ -287,10 +293,10 @@ def _validate(c: TrainConfig) -> None:
         "'paper' or 'small'",
     )
     _require(
-        c.n_points is None or (_is_int(c.n_points) and c.n_points >= 8),
+        c.n_points is None or (_is_int(c.n_points) and 8 <= c.n_points <= MAX_POINTS),
         "n_points",
         c.n_points,
-        "an integer >= 8 (or unset)",
+        f"an integer in [8, {MAX_POINTS}] (or unset)",
     )
     _require(
         _is_number(c.missing_ratio) and 0 < c.missing_ratio < 1,

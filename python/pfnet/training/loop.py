@@ -16,6 +16,7 @@ time is spent in training and validation steps.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sys
@@ -34,7 +35,7 @@ from pfnet.data.augment import Augmentation, up_axis_index
 from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError, DataError
 from pfnet.geometry import farthest_point_sample
-from pfnet.io import atomic_path
+from pfnet.io import atomic_path, refuse_overlap
 from pfnet.models.layers import multi_resolution_indices
 from pfnet.models.pfnet import PRIMARY_POINTS, SECONDARY_POINTS
 from pfnet.training import distributed
@@ -88,6 +89,7 @@ def train(
         ConfigError: Bad configuration, or a resume that changes the configuration.
         DataError: Missing or unusable dataset or checkpoint.
     """
+    refuse_overlap(out_dir, [data_dir])
     context = distributed.setup(device)
     try:
         trainer = Trainer(config, Path(data_dir), Path(out_dir), context, resume=resume)
@@ -194,9 +196,16 @@ class Trainer:
         if out_dir.exists() and not out_dir.is_dir():
             raise ConfigError(f"--out {out_dir} exists and is not a folder")
         state = None
+        self.data_identity = data_identity(data_dir)
         if resume:
             state = read_checkpoint(out_dir / LAST, "cpu")
             config = _resumed_config(config, state, out_dir / LAST)
+            stored = state.get("data")  # absent in checkpoints of older pfnet versions
+            if stored and stored.get("fingerprint") != self.data_identity["fingerprint"]:
+                raise ConfigError(
+                    f"{out_dir / LAST} trained on another data set ({stored.get('path')}); "
+                    f"--data {data_dir} differs from it: resume with the same data"
+                )
             if state["batches_done"] and state["world_size"] != context.world_size:
                 raise ConfigError(
                     f"{out_dir / LAST} was saved mid-epoch by {state['world_size']} process(es); "
@@ -323,6 +332,7 @@ class Trainer:
             "history": self.history,
             "rng": rng,
             "world_size": self.context.world_size,
+            "data": self.data_identity,
         }
 
     def _load_state(self, state: dict[str, Any]) -> None:
@@ -558,6 +568,22 @@ def _augmentation(config: TrainConfig, data_dir: Path) -> Augmentation | None:
         except ConfigError as err:
             raise ConfigError(f"augment_rotate: {err} ({data_dir})") from None
     return Augmentation(up_axis, config.augment_scale, config.augment_jitter)
+
+
+def data_identity(data_dir: Path) -> dict[str, str]:
+    """What a run records of its data set, so that ``--resume`` can refuse another one.
+
+    The fingerprint covers the manifest (source, options, seed, every shape's name and split)
+    and the split files' sizes; a data set moved or copied elsewhere keeps it.
+    """
+    digest = hashlib.sha256()
+    manifest = Path(data_dir) / "manifest.json"
+    if manifest.is_file():
+        digest.update(manifest.read_bytes())
+    for split in ("train", "val"):
+        path = Path(data_dir) / f"{split}.npz"
+        digest.update(f"{split}:{path.stat().st_size if path.is_file() else -1};".encode())
+    return {"path": str(Path(data_dir).resolve()), "fingerprint": digest.hexdigest()}
 
 
 def _resumed_config(config: TrainConfig, state: dict[str, Any], path: Path) -> TrainConfig:
