@@ -312,3 +312,20 @@ def test_every_sample_unreadable_is_an_error(tmp_path, tiny_dataset, test_keys):
     with pytest.raises(DataError, match=rf"0 missing, {len(test_keys)} unreadable"):
         evaluate_predictions(tmp_path, tiny_dataset)
     shutil.rmtree(tmp_path)
+
+
+def test_pcd_predictions_are_found_and_scored(tmp_path, tiny_dataset):
+    from pfnet.data import test_protocol_crop
+
+    clouds = load_split(tiny_dataset, "test")
+    _, removed = test_protocol_crop(np.asarray(clouds.points), 0.25)
+    for category, name, cloud in zip(clouds.category, clouds.name, removed, strict=True):
+        head = (
+            "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+            f"WIDTH {len(cloud)}\nHEIGHT 1\nPOINTS {len(cloud)}\nDATA binary\n"
+        )
+        (tmp_path / category).mkdir(exist_ok=True)
+        (tmp_path / category / f"{name}.pcd").write_bytes(head.encode() + cloud.tobytes())
+    assert all(p.suffix == ".pcd" for p in find_prediction_files(tmp_path).values())
+    result = evaluate_predictions(tmp_path, tiny_dataset, missing_ratio=0.25)
+    assert result.report["mean"]["pred_to_gt"] == 0.0 and not result.missing

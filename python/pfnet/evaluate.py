@@ -1,7 +1,7 @@
 """``pfnet evaluate``: score any method's prediction folder against a data set.
 
 A prediction folder holds one file per sample, ``PRED/<category>/<name>.<ext>`` with ``ext``
-one of ``.npy .ply .xyz .pts .txt`` (the first found in that order). The ground truth comes
+one of ``.npy .ply .pcd .xyz .pts .txt`` (the first found in that order). The ground truth comes
 from the deterministic test protocol (DESIGN.md §3, :func:`pfnet.data.test_protocol_crop`):
 sample *i* of the split loses the ``round(r·N)`` points nearest ``VIEWPOINTS[i % 5]``.
 
@@ -35,7 +35,7 @@ from pfnet.errors import ConfigError, DataError
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
 
-PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".xyz", ".pts", ".txt")
+PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".pcd", ".xyz", ".pts", ".txt")
 """Suffixes a prediction file may have, in the order they are looked for."""
 
 REGIONS = ("missing", "whole")
