@@ -80,27 +80,49 @@ fn relax(xs: &[f32], ys: &[f32], zs: &[f32], min_dist: &mut [f32], s: [f32; 3]) 
     let n = min_dist.len();
     let (xs, ys, zs) = (&xs[..n], &ys[..n], &zs[..n]);
     #[cfg(target_arch = "x86_64")]
-    let (mut best, body) = if std::arch::is_x86_feature_detected!("avx") {
+    let (best, body) = if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: AVX is available (checked) and all slices hold at least n values.
         unsafe { relax_avx(xs, ys, zs, min_dist, s) }
     } else {
         (f32::NEG_INFINITY, 0)
     };
     #[cfg(not(target_arch = "x86_64"))]
-    let (mut best, body) = (f32::NEG_INFINITY, 0);
-    for i in body..n {
+    let (best, body) = (f32::NEG_INFINITY, 0);
+    let best = relax_scalar(xs, ys, zs, min_dist, s, body, best);
+    let first = min_dist.iter().position(|&v| v == best).unwrap_or(0);
+    (best, first)
+}
+
+/// The scalar update of `min_dist[from..]`; returns the maximum of it and `best`.
+#[inline(always)]
+fn relax_scalar(
+    xs: &[f32],
+    ys: &[f32],
+    zs: &[f32],
+    min_dist: &mut [f32],
+    s: [f32; 3],
+    from: usize,
+    mut best: f32,
+) -> f32 {
+    for i in from..min_dist.len() {
         let d = sq_dist(xs[i], ys[i], zs[i], s);
         let v = if d < min_dist[i] { d } else { min_dist[i] };
         min_dist[i] = v;
         best = if v > best { v } else { best };
     }
-    let first = min_dist.iter().position(|&v| v == best).unwrap_or(0);
-    (best, first)
+    best
 }
 
 /// 8 points at a time with AVX: the same float32 operations as [`sq_dist`] (sub, mul, add in
 /// the same order; no FMA), so the values are bit-identical. Returns the maximum of the
 /// processed prefix and its length (a multiple of 8).
+///
+/// # Safety
+///
+/// The CPU must support AVX (callers check `is_x86_feature_detected!("avx")`), and `xs`,
+/// `ys`, `zs` must each hold at least `min_dist.len()` values: the loads read
+/// `[i, i + 8)` for every `i + 8 <= min_dist.len()`. The test
+/// `avx_and_scalar_updates_are_bit_identical` runs both paths on the same data.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
 unsafe fn relax_avx(
@@ -364,6 +386,35 @@ pub fn sample_with(points: &[[f32; 3]], n_samples: usize, leaf_size: Option<usiz
 mod tests {
     use super::*;
     use rand::{rngs::StdRng, Rng, SeedableRng};
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn avx_and_scalar_updates_are_bit_identical() {
+        if !std::arch::is_x86_feature_detected!("avx") {
+            return; // nothing to compare on this CPU; the scalar path is the reference
+        }
+        let mut rng = StdRng::seed_from_u64(11);
+        for n in [0usize, 1, 7, 8, 9, 16, 61, 1000] {
+            let coords = |rng: &mut StdRng| -> Vec<f32> {
+                // a coarse grid makes equal distances (ties) common
+                (0..n)
+                    .map(|_| rng.gen_range(-4i32..4) as f32 * 0.25)
+                    .collect()
+            };
+            let (xs, ys, zs) = (coords(&mut rng), coords(&mut rng), coords(&mut rng));
+            let start: Vec<f32> = (0..n).map(|_| rng.gen_range(0.0f32..9.0)).collect();
+            let s = [0.25f32, -0.5, 0.75];
+            let mut scalar = start.clone();
+            let best_scalar = relax_scalar(&xs, &ys, &zs, &mut scalar, s, 0, f32::NEG_INFINITY);
+            let mut vector = start.clone();
+            // SAFETY: AVX was detected above; all slices hold n values.
+            let (best_head, body) = unsafe { relax_avx(&xs, &ys, &zs, &mut vector, s) };
+            let best_vector = relax_scalar(&xs, &ys, &zs, &mut vector, s, body, best_head);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&scalar), bits(&vector), "n={n}");
+            assert_eq!(best_scalar.to_bits(), best_vector.to_bits(), "n={n}");
+        }
+    }
 
     fn random_cloud(n: usize, seed: u64) -> Vec<[f32; 3]> {
         let mut rng = StdRng::seed_from_u64(seed);
