@@ -5,7 +5,7 @@
 //! in float64 from the input coordinates; ties go to the lowest index. Both outputs keep the
 //! input's relative point order.
 
-use crate::error::{check_finite, GeometryError, Result};
+use crate::error::{check_finite, GeometryError, Result, MAX_COORDINATE};
 
 /// The authors' five crop centres (PF-Net code, `choice` in `Train_PFNet.py`).
 pub const VIEWPOINTS: [[f64; 3]; 5] = [
@@ -73,6 +73,9 @@ pub fn crop_mask<T: Copy + Into<f64>>(
             Ok(mask)
         }
         CropSize::Radius(radius) => {
+            // The count path checks coordinates as it computes its keys; this one must too
+            // (it once returned NaN points in the partial cloud).
+            check_finite("points", 0, points)?;
             if !(radius.is_finite() && radius >= 0.0) {
                 return Err(GeometryError::out_of_range(
                     "radius",
@@ -90,7 +93,8 @@ pub fn crop_mask<T: Copy + Into<f64>>(
 
 /// Sortable keys of the squared distances to `viewpoint` (finite distances are >= +0, so their
 /// bit patterns order like the values), computed in one pass with their minimum and maximum.
-/// `None` if a distance is not finite (the caller then names the offending point).
+/// `None` if a distance is not finite or a coordinate is beyond [`MAX_COORDINATE`] (the caller
+/// then names the offending point).
 struct DistanceKeys {
     keys: Vec<u64>,
     lo: u64,
@@ -123,17 +127,20 @@ fn distance_keys<'a, T: Copy + Into<f64> + 'a>(
     let mut keys = KEY_BUFFER.with(|b| std::mem::take(&mut *b.borrow_mut()));
     keys.clear();
     let mut all_finite = true;
+    let mut largest = 0.0f64;
     let (mut lo, mut hi) = (u64::MAX, 0);
     keys.extend(points.map(|p| {
         let d = sq_dist_f64(p, &viewpoint);
         all_finite &= d.is_finite();
+        let [x, y, z] = p.map(|c| c.into().abs());
+        largest = largest.max(x).max(y).max(z);
         let k = d.to_bits();
         lo = lo.min(k);
         hi = hi.max(k);
         k
     }));
     let keys = DistanceKeys { keys, lo, hi };
-    all_finite.then_some(keys)
+    (all_finite && largest <= MAX_COORDINATE).then_some(keys)
 }
 
 /// Keys of a cloud, or the error naming its first non-finite point.

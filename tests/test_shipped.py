@@ -131,3 +131,52 @@ def test_complete_and_predict_use_the_default_model_without_checkpoint(
     info = json.loads((pred / "predictions.json").read_text())
     assert info["checkpoint"] == f"shipped:{DEFAULT_MODEL}"
     assert info["n_samples"] == 12
+
+
+def test_the_shipped_default_model_completes_real_scans_with_no_checkpoint(
+    tmp_path: Path, capsys
+) -> None:
+    """The installed package's own model file: no training run, no --checkpoint, no download.
+
+    The scans are real catalogue chairs when Debian's sweethome3d-furniture is installed
+    (else procedural chairs), cut as a scanner would see them, moved into scanner units and
+    written as .xyz and binary .ply.
+    """
+    from pfnet.data import SWEETHOME3D_PATH, load_split, prepare_dataset
+    from pfnet.geometry import crop_by_viewpoint
+
+    models = {m.name: m for m in shipped_models()}
+    assert DEFAULT_MODEL in models, "the default model file is missing from pfnet/weights"
+    card = models[DEFAULT_MODEL].card
+    assert card["test"]["cd_l2"] > 0 and card["train_data"]["licenses"]
+    real = SWEETHOME3D_PATH.is_dir()
+    data = tmp_path / "data"
+    prepare_dataset(
+        SWEETHOME3D_PATH if real else None,
+        data,
+        points=3000,
+        categories=["chair"],
+        count=None if real else 4,
+        progress=False,
+    )
+    shapes = load_split(data, "test").points
+    viewpoint = np.array([1.0, 0.0, 1.0], np.float32)
+    scans = {}
+    for k, name in enumerate(("scan.xyz", "scan2.ply")):
+        partial, _ = crop_by_viewpoint(shapes[k % len(shapes)], viewpoint, n_missing=750)
+        scans[name] = partial * 850.0 + np.array([1e4, -300.0, 52.0], np.float32)  # millimetres
+    rows = "\n".join(" ".join(repr(float(v)) for v in p) for p in scans["scan.xyz"])
+    (tmp_path / "scan.xyz").write_text(rows)
+    write_ply(tmp_path / "scan2.ply", scans["scan2.ply"])
+    out = tmp_path / "done"
+    inputs = [str(tmp_path / name) for name in scans]
+    assert main(["complete", *inputs, "--out", str(out), "--device", "cpu"]) == 0
+    assert "completed 2 of 2" in capsys.readouterr().out
+    for name, scan in scans.items():
+        missing = read_point_cloud(out / f"{Path(name).stem}_missing.ply")
+        assert missing.shape == (512, 3) and np.isfinite(missing).all()
+        # the prediction is spread around the cut in the scan's own units, not a point
+        low, high = scan.min(axis=0), scan.max(axis=0)
+        assert np.all(missing.std(axis=0) > 0.01 * (high - low))
+        assert np.all(missing.mean(axis=0) > low - 0.5 * (high - low))
+        assert np.all(missing.mean(axis=0) < high + 0.5 * (high - low))

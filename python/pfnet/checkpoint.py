@@ -59,6 +59,35 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
     return state
 
 
+def check_weights(path: Path, config: TrainConfig, weights: dict[str, Any]) -> None:
+    """Check the stored weights against the model ``config`` describes, before building it.
+
+    The model is built on PyTorch's ``meta`` device (shapes only, no memory), so a forged
+    config describing a billion-parameter network costs nothing before it is refused.
+
+    Raises:
+        DataError: Missing, unexpected or mis-shaped tensors (the first few named).
+    """
+    from pfnet.models import build_model
+
+    with torch.device("meta"):
+        expected = {k: tuple(v.shape) for k, v in build_model(config).state_dict().items()}
+    stored = {k: tuple(v.shape) for k, v in weights.items() if isinstance(v, torch.Tensor)}
+    problems = [f"missing {k}" for k in expected if k not in stored]
+    problems += [f"unexpected {k}" for k in stored if k not in expected]
+    problems += [
+        f"{k} is {stored[k]}, expected {shape}"
+        for k, shape in expected.items()
+        if k in stored and stored[k] != shape
+    ]
+    if problems:
+        more = f" and {len(problems) - 3} more" if len(problems) > 3 else ""
+        raise DataError(
+            f"checkpoint {path} does not match the model its config describes: "
+            f"{'; '.join(problems[:3])}{more}"
+        )
+
+
 def load_checkpoint(
     path: str | os.PathLike[str] | None, device: str | torch.device = "cpu"
 ) -> tuple[nn.Module, TrainConfig]:
@@ -89,11 +118,9 @@ def load_checkpoint(
         state = read_checkpoint(path, device)
         config_dict, weights = state["config"], state["model"]
     config = TrainConfig.from_dict(config_dict, source=f"checkpoint {path}")
+    check_weights(path, config, weights)
     model = build_model(config)
-    try:
-        model.load_state_dict(weights)  # copies float16 model files into float32 parameters
-    except RuntimeError as err:
-        raise DataError(f"checkpoint {path} does not match its model: {err}") from None
+    model.load_state_dict(weights)  # copies float16 model files into float32 parameters
     broken = [name for name, value in model.state_dict().items() if not value.isfinite().all()]
     if broken:  # a diverged run's weights: every completion would be NaN
         raise DataError(

@@ -39,6 +39,9 @@ PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".pcd", ".xyz", ".pts", 
 """Suffixes a prediction file may have, in the order they are looked for."""
 
 REGIONS = ("missing", "whole")
+# Data sets are normalised into the unit ball; a prediction reaching beyond this radius is
+# in other coordinates (a scan's own units, another normalisation) and is flagged.
+FAR = 10.0
 SCALE = 1000
 _JSON_METRICS = ("pred_to_gt", "gt_to_pred", "cd_l1", "f_score")
 
@@ -57,6 +60,9 @@ class Evaluation:
         reasons: Why each unreadable file was rejected (one line each).
         unmatched: Prediction files that match no sample of the split.
         n_samples: Number of samples in the split.
+        far: ``<category>/<name>`` of scored predictions with points more than
+            :data:`FAR` from the origin, where the data set's clouds lie within radius 1:
+            predictions in other coordinates, scored but probably not what was meant.
     """
 
     report: dict
@@ -68,6 +74,7 @@ class Evaluation:
     reasons: list[str] = field(default_factory=list)
     unmatched: list[str] = field(default_factory=list)
     n_samples: int = 0
+    far: list[str] = field(default_factory=list)
 
 
 def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, Path]:
@@ -149,6 +156,8 @@ def evaluate_predictions(
         raise ConfigError("evaluate: --pred-is-complete needs --region whole")
     if not 0.0 < missing_ratio < 1.0:
         raise ConfigError(f"evaluate: --missing-ratio must be in (0, 1), got {missing_ratio}")
+    if workers is not None and not 1 <= workers <= 256:
+        raise ConfigError(f"evaluate: --workers must be in [1, 256], got {workers}")
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():
         raise DataError(f"evaluate: prediction folder {pred_dir} does not exist")
@@ -213,6 +222,7 @@ def evaluate_predictions(
         reasons=reasons,
         unmatched=unmatched,
         n_samples=len(sample_keys),
+        far=[sample_keys[i] for i, p in zip(scored, preds, strict=True) if np.abs(p).max() > FAR],
     )
 
 
@@ -379,21 +389,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
-    from pfnet.io import refuse_input_overwrite
     from pfnet.metrics import summarize
 
     if args.gallery is not None and args.gallery_count < 1:
         raise ConfigError(f"evaluate: --gallery-count must be at least 1, got {args.gallery_count}")
     args.missing_ratio = recorded_protocol(args)
-    outputs = {flag: getattr(args, flag) for flag in ("json", "csv", "gallery")}
-    if any(outputs.values()) and Path(args.pred).is_dir():
-        # before scoring: a bad output path must not waste the run or replace an input
-        predictions = find_prediction_files(args.pred, quiet=True).values()
-        inputs = [*predictions, Path(args.pred) / "predictions.json"]
-        inputs += [Path(args.data) / name for name in ("manifest.json", f"{args.split}.npz")]
-        for flag, output in outputs.items():
-            if output is not None:
-                refuse_input_overwrite([output], inputs, flag=f"--{flag}")
+    for flag in ("json", "csv", "gallery"):
+        if getattr(args, flag) is not None:  # checked before scoring, not after
+            check_report_path(getattr(args, flag), args.pred, args.data, flag=f"--{flag}")
     evaluation = evaluate_predictions(
         args.pred,
         args.data,
@@ -438,6 +441,33 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_report_path(output: Path, pred_dir: Path, data_dir: Path, *, flag: str) -> None:
+    """Refuse a report path that would replace part of the inputs.
+
+    Nothing may be written inside the data set; inside the prediction folder a report may
+    replace an earlier report, never a prediction file (of any suffix, matched or not), the
+    ``predictions.json`` record or a hidden file.
+
+    Raises:
+        ConfigError: Naming the flag and the file.
+    """
+    from pfnet.io import refuse_input_overwrite, refuse_overlap
+
+    refuse_input_overwrite([output], [], flag=flag)  # not a folder
+    refuse_overlap(output, [data_dir], flag=flag)
+    target = Path(output).resolve()
+    if target.is_relative_to(Path(pred_dir).resolve()) and target.exists():
+        if (
+            target.suffix.lower() in PREDICTION_SUFFIXES
+            or target.name == "predictions.json"
+            or target.name.startswith(".")
+        ):
+            raise ConfigError(
+                f"{flag}: writing {output} would overwrite a file of the prediction folder "
+                f"{pred_dir}; choose another name"
+            )
+
+
 def recorded_protocol(args: argparse.Namespace) -> float:
     """The missing ratio to score with, checked against ``PRED/predictions.json`` if present.
 
@@ -456,8 +486,13 @@ def recorded_protocol(args: argparse.Namespace) -> float:
         info = json.loads(record.read_text(encoding="utf-8"))
         made_ratio = float(info["protocol"]["missing_ratio"])
         made_split = str(info["split"])
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise ConfigError(f"evaluate: cannot read {record}: {err}") from None
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
+        if args.ignore_recorded_protocol:
+            return 0.25 if asked is None else asked
+        raise ConfigError(
+            f"evaluate: cannot read {record} ({err!r}); fix or remove it, or pass "
+            "--ignore-recorded-protocol"
+        ) from None
     ratio = made_ratio if asked is None else asked
     if args.ignore_recorded_protocol:
         return ratio
@@ -476,6 +511,13 @@ def recorded_protocol(args: argparse.Namespace) -> float:
 
 def _report_problems(evaluation: Evaluation, limit: int = 20) -> bool:
     """Print missing, unreadable and unmatched files to stderr; True if samples went unscored."""
+    if evaluation.far:
+        print(
+            f"warning: {len(evaluation.far)} prediction(s) reach more than {FAR:g} from the "
+            f"origin (e.g. {evaluation.far[0]}), where the data set's clouds lie within 1: "
+            "are they in the data set's normalised coordinates?",
+            file=sys.stderr,
+        )
     if evaluation.unmatched:
         print(
             f"warning: {len(evaluation.unmatched)} prediction file(s) match no sample, "

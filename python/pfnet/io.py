@@ -33,6 +33,13 @@ import numpy as np
 
 from pfnet.errors import ConfigError, DataError
 
+# The geometry core's bound (pfnet._core.MAX_COORDINATE), repeated so that reading a file
+# does not load the extension.
+MAX_COORDINATE = 1e18
+# Rows of PLY elements with list properties are walked one by one in Python (about a second
+# per million): more than this many is refused rather than taking minutes.
+MAX_WALKED_ROWS = 2_000_000
+
 __all__ = [
     "POINT_CLOUD_SUFFIXES",
     "atomic_path",
@@ -233,12 +240,22 @@ def read_point_cloud(path: str | os.PathLike[str]) -> np.ndarray:
         raise DataError(f"{file}: cannot read: {err.strerror or err}") from err
     except MemoryError:
         raise DataError(f"{file}: too large to load into memory") from None
-    points = np.ascontiguousarray(points, dtype=np.float32)
+    except (ValueError, IndexError, OverflowError, TypeError, RecursionError) as err:
+        # The readers' single boundary: whatever hostile bytes make a parser raise is a
+        # malformed file, named, so that batch commands skip it and go on.
+        raise DataError(f"{file}: malformed {suffix[1:]} file ({err})") from None
+    with np.errstate(over="ignore", invalid="ignore"):
+        points = np.ascontiguousarray(points, dtype=np.float32)
     if points.shape[0] == 0:
         raise DataError(f"{file}: the file holds no points")
     if not np.isfinite(points).all():
         bad = int((~np.isfinite(points).all(axis=1)).sum())
         raise DataError(f"{file}: {bad} point(s) have NaN or infinite coordinates")
+    if np.abs(points).max() > MAX_COORDINATE:
+        raise DataError(
+            f"{file}: coordinates beyond ±{MAX_COORDINATE:g}, which no distance computation "
+            "in float32 survives; scale the cloud down"
+        )
     return points
 
 
@@ -317,6 +334,8 @@ def _read_text(file: Path) -> np.ndarray:
         line = raw.strip()
         if not line or line.startswith(("#", "//")):
             continue
+        if "_" in line:  # float() would read "1_0" as 10
+            raise DataError(f"{file}: line {number} is not numeric: {line[:60]!r}")
         rows.append([t for t in _SPLIT.split(line) if t])
         line_numbers.append(number)
     if rows:
@@ -399,18 +418,22 @@ def _read_ply(file: Path) -> np.ndarray:
                 raise DataError(f"{file}: unsupported PLY format line {line!r}")
             fmt = words[1]
         elif words[0] == "element":
-            if len(words) != 3 or not words[2].isdigit():
-                raise DataError(f"{file}: malformed PLY element line {line!r}")
+            if len(words) != 3 or not words[2].isdigit() or len(words[2]) > 15:
+                raise DataError(f"{file}: malformed PLY element line {line[:80]!r}")
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property":
             if not elements:
                 raise DataError(f"{file}: PLY property before any element: {line!r}")
             if len(words) == 5 and words[1] == "list":
                 prop = (words[4], _ply_type(file, words[3]), _ply_type(file, words[2]))
+                if prop[2][0] not in "iu":
+                    raise DataError(f"{file}: PLY list length type must be an integer: {line!r}")
             elif len(words) == 3:
                 prop = (words[2], _ply_type(file, words[1]), None)
             else:
                 raise DataError(f"{file}: malformed PLY property line {line!r}")
+            if prop[0] in [p[0] for p in elements[-1][2]]:
+                raise DataError(f"{file}: PLY property {prop[0]!r} declared twice: {line!r}")
             elements[-1][2].append(prop)
         else:
             raise DataError(f"{file}: unexpected PLY header line {line!r}")
@@ -459,7 +482,10 @@ def _read_ply_ascii(file, body: bytes, elements, vertex_index: int) -> np.ndarra
                         row[pname] = float(values[pos])
                         pos += 1
                     else:
-                        pos += int(values[pos]) + 1
+                        length = int(values[pos])
+                        if length < 0:
+                            raise ValueError
+                        pos += length + 1
                 out[i] = (row["x"], row["y"], row["z"])
             except (ValueError, IndexError):
                 raise DataError(f"{file}: malformed PLY vertex line {start + i + 1}") from None
@@ -495,6 +521,12 @@ def _read_ply_binary(file, body: bytes, elements, vertex_index: int, endian: str
         # Elements with list properties have variable-size rows: walk them one by one. Every
         # row takes at least its scalars and list lengths, so a count the bytes left cannot
         # hold is refused before the walk (a forged count would otherwise loop for hours).
+        if count > MAX_WALKED_ROWS:
+            raise DataError(
+                f"{file}: PLY element {name!r} has {count} rows with list properties before "
+                f"the vertices are read; pfnet walks at most {MAX_WALKED_ROWS} (write the "
+                "vertex element first)"
+            )
         least = sum(np.dtype(p[2] if p[2] is not None else p[1]).itemsize for p in props)
         if count * least > len(body) - offset:
             raise DataError(
@@ -560,9 +592,12 @@ def _read_pcd(file: Path) -> np.ndarray:
         if "POINTS" in fields:
             n_points = int(fields["POINTS"][0])
         else:
-            n_points = int(fields["WIDTH"][0]) * int(fields["HEIGHT"][0])
+            width, height = int(fields["WIDTH"][0]), int(fields["HEIGHT"][0])
+            n_points = width * height if min(width, height) >= 0 else -1
     except (ValueError, KeyError, IndexError):
         raise DataError(f"{file}: PCD header has a malformed SIZE/COUNT/POINTS line") from None
+    if min(counts_i) < 1 or n_points < 0:
+        raise DataError(f"{file}: PCD header has a COUNT below 1 or a negative point count")
     dtypes = []
     for name, size, kind in zip(names, sizes, fields["TYPE"], strict=True):
         key = (kind.upper(), size)

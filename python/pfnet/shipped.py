@@ -69,7 +69,7 @@ def read_metadata(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[st
     try:
         config = json.loads(metadata["config"])
         card = json.loads(metadata.get("card", "{}"))
-    except (KeyError, json.JSONDecodeError) as err:
+    except (KeyError, ValueError, RecursionError) as err:  # RecursionError: forged nesting
         raise DataError(f"model file {path} has a broken header: {err}") from None
     if not isinstance(config, dict) or not isinstance(card, dict):
         raise DataError(f"model file {path} has a broken header: config and card must be maps")

@@ -78,3 +78,14 @@ def test_duplicate_points_give_exact_distances_and_first_indices() -> None:
         first = {tuple(p): i for i, p in reversed(list(enumerate(reference.tolist())))}
         assert all(first[tuple(reference[i].tolist())] == i for i in index)
     assert chamfer(identical, identical) == (0.0, 0.0)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e19, 1e300])
+@pytest.mark.parametrize("size", [{"radius": 0.5}, {"n_missing": 4}])
+def test_both_crop_sizes_check_every_coordinate(value: float, size: dict) -> None:
+    from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint
+
+    points = _cloud(32).astype(np.float64)
+    points[7, 1] = value
+    with pytest.raises(ValueError, match="points (contains NaN|has a coordinate beyond)"):
+        crop_by_viewpoint(points, VIEWPOINTS[0], **size)

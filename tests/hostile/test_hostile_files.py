@@ -51,7 +51,10 @@ def _ply_with_forged_faces(path: Path, faces: int, list_length: int) -> Path:
 @pytest.mark.parametrize(("faces", "length"), [(10**12, 3), (3, -1), (2**40, -128)])
 def test_forged_ply_counts_are_refused_at_once(tmp_path: Path, faces: int, length: int) -> None:
     path = _ply_with_forged_faces(tmp_path / "forged.ply", faces, length)
-    with _deadline(30), pytest.raises(DataError, match="forged.ply: (truncated|negative)"):
+    with (
+        _deadline(30),
+        pytest.raises(DataError, match="forged.ply: (truncated|negative|PLY element .face. has)"),
+    ):
         read_point_cloud(path)
 
 
@@ -197,3 +200,183 @@ def test_a_symlink_loop_among_prediction_folders_is_named_and_skipped(
     assert "Too many levels of symbolic links" in captured.err
     n_chairs = int((split.category == "chair").sum())
     assert f"{len(split) - n_chairs} of {len(split)} samples scored" in captured.out
+
+
+# ----------------------------------------------------------------------------------------
+# The second audit's variants (a fresh hostile run against the fixes above).
+
+
+def _ply(path: Path, header: str, body: bytes = b"") -> Path:
+    path.write_bytes(("ply\n" + header + "end_header\n").encode() + body)
+    return path
+
+
+def _pcd(path: Path, fields: str, data: str, body: bytes) -> Path:
+    path.write_bytes(("VERSION 0.7\n" + fields + f"DATA {data}\n").encode() + body)
+    return path
+
+
+def _malformed_files(folder: Path) -> dict[str, tuple[Path, str]]:
+    """Each file with the message its reading must give (none may parse)."""
+    bin_le = "format binary_little_endian 1.0\n"
+    xyz_float = "property float x\nproperty float y\nproperty float z\n"
+    xyz3 = "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"
+    return {
+        "count0.pcd": (
+            _pcd(
+                folder / "count0.pcd",
+                xyz3 + "COUNT 0 0 0\nPOINTS 1\n",
+                "binary_compressed",
+                struct.pack("<II", 0, 0),
+            ),
+            "COUNT below 1",
+        ),
+        "negative.pcd": (
+            _pcd(
+                folder / "negative.pcd",
+                xyz3 + "COUNT 1 1 1\nPOINTS -5\n",
+                "binary",
+                np.zeros(30, "<f4").tobytes(),
+            ),
+            "negative point count",
+        ),
+        "countneg.pcd": (
+            _pcd(folder / "countneg.pcd", xyz3 + "COUNT -2 1 1\nPOINTS 1\n", "ascii", b"1 2 3\n"),
+            "COUNT below 1",
+        ),
+        "floatlen.ply": (
+            _ply(
+                folder / "floatlen.ply",
+                bin_le + "element vertex 1\n" + xyz_float + "property list float uchar foo\n",
+                np.zeros(4, "<f4").tobytes(),
+            ),
+            "list length type must be an integer",
+        ),
+        "twice.ply": (
+            _ply(
+                folder / "twice.ply",
+                bin_le + "element vertex 1\n" + xyz_float + "property float x\n",
+                np.zeros(4, "<f4").tobytes(),
+            ),
+            "declared twice",
+        ),
+        "digits.ply": (
+            _ply(folder / "digits.ply", bin_le + f"element vertex {'9' * 5000}\n" + xyz_float),
+            "malformed PLY element line",
+        ),
+        "negasc.ply": (
+            _ply(
+                folder / "negasc.ply",
+                "format ascii 1.0\nelement vertex 1\n"
+                + xyz_float
+                + "property list uchar int ids\n",
+                b"1 2 3 -3 7 8\n",
+            ),
+            "malformed PLY vertex line",
+        ),
+        "walk.ply": (
+            _ply(
+                folder / "walk.ply",
+                bin_le + "element face 3000000\n"
+                "property list uchar int ids\nelement vertex 1\n" + xyz_float,
+                bytes(3_000_000) + np.zeros(3, "<f4").tobytes(),
+            ),
+            "walks at most",
+        ),
+        "underscore.xyz": (folder / "underscore.xyz", "is not numeric"),
+        "huge.xyz": (folder / "huge.xyz", "coordinates beyond"),
+    }
+
+
+def test_malformed_files_of_the_second_audit_are_named_errors(tmp_path: Path) -> None:
+    files = _malformed_files(tmp_path)
+    (tmp_path / "underscore.xyz").write_text("1_0 2 3\n4 5 6\n")
+    (tmp_path / "huge.xyz").write_text("1e30 2 3\n4 5 6\n")
+    for name, (path, message) in files.items():
+        with _deadline(20), pytest.raises(DataError, match=message):
+            read_point_cloud(path)
+        assert name in str(path)
+
+
+def test_complete_and_evaluate_go_on_past_every_malformed_file(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    pytest.importorskip("torch")
+    from pfnet.checkpoint import save_checkpoint
+    from pfnet.models import build_model
+    from pfnet.training.config import preset_config
+
+    config = preset_config("small").replace(n_points=512, width=0.125)
+    checkpoint = tmp_path / "m.pt"
+    save_checkpoint(
+        checkpoint, {"config": config.to_dict(), "model": build_model(config).state_dict()}
+    )
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "underscore.xyz").write_text("1_0 2 3\n4 5 6\n")
+    (bad / "huge.xyz").write_text("1e30 2 3\n4 5 6\n")
+    files = [path for path, _ in _malformed_files(bad).values()]
+    good = tmp_path / "good.ply"
+    write_ply(good, np.random.default_rng(0).normal(size=(400, 3)).astype(np.float32))
+    args = ["complete", *map(str, files), str(good), "--out", str(tmp_path / "out")]
+    with _deadline(60):
+        assert main([*args, "--checkpoint", str(checkpoint), "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert f"completed 1 of {len(files) + 1}" in captured.out
+    assert all(path.name in captured.err for path in files) and "Traceback" not in captured.err
+
+    # evaluate: one prediction far beyond the float32 range, one merely far away
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    victims = sorted(pred.rglob("*.npy"))[:2]
+    np.save(victims[0], np.full((128, 3), 1e30, np.float32))
+    np.save(victims[1], np.full((128, 3), 9e17, np.float32))
+    assert main(["evaluate", str(pred), "--data", str(tiny_dataset)]) == 2
+    captured = capsys.readouterr()
+    assert "coordinates beyond" in captured.err and victims[0].stem in captured.err
+    assert "reach more than 10 from the origin" in captured.err
+
+
+def test_forged_model_configs_are_refused_before_building_anything(tmp_path: Path, capsys) -> None:
+    pytest.importorskip("torch")
+    from pfnet.checkpoint import save_checkpoint
+    from pfnet.training.config import preset_config
+
+    config = preset_config("paper").replace(n_points=65536, width=4.0, missing_ratio=0.5)
+    path = tmp_path / "forged.pt"
+    save_checkpoint(path, {"config": config.to_dict(), "model": {}})
+    scan = tmp_path / "scan.ply"
+    write_ply(scan, np.random.default_rng(0).normal(size=(400, 3)).astype(np.float32))
+    with _deadline(20):  # it used to build 1.2 billion parameters (5.3 GB, 18 s) first
+        assert (
+            main(["complete", str(scan), "--checkpoint", str(path), "--out", str(tmp_path / "o")])
+            == 1
+        )
+    err = capsys.readouterr().err
+    assert "does not match the model its config describes: missing" in err and "more" in err
+    assert len(err.splitlines()) == 1 and len(err) < 600
+
+    from safetensors.numpy import save_file
+
+    deep = tmp_path / "deep.safetensors"
+    meta = {"format": "pfnet-shipped-model", "version": "1", "config": "[" * 100000 + "]" * 100000}
+    save_file({"w": np.zeros(1, np.float32)}, str(deep), metadata=meta)
+    assert (
+        main(["complete", str(scan), "--checkpoint", str(deep), "--out", str(tmp_path / "o")]) == 1
+    )
+    assert "has a broken header" in capsys.readouterr().err
+
+
+def test_a_split_whose_clouds_disagree_with_the_manifest_is_refused(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    test = load_split(data, "test")
+    np.savez(data / "test.npz", points=test.points[:, :100], category=test.category, name=test.name)
+    with pytest.raises(DataError, match="clouds of 100 points, but the manifest says 512"):
+        load_split(data, "test")
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    assert main(["evaluate", str(pred), "--data", str(tiny_dataset), "--workers", "100000"]) == 1
+    assert "--workers must be in [1, 256]" in capsys.readouterr().err

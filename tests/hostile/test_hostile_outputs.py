@@ -142,9 +142,26 @@ def test_evaluate_and_render_outputs_never_replace_inputs(
     before = _tree(tmp_path)
     base = ["evaluate", str(pred), "--data", str(tiny_dataset)]
     assert main([*base, "--json", str(victim)]) == 1
-    assert "would overwrite the input" in capsys.readouterr().err
-    assert main([*base, "--csv", str(tiny_dataset / "test.npz")]) == 1
-    assert "would overwrite the input" in capsys.readouterr().err
+    assert "would overwrite a file of the prediction folder" in capsys.readouterr().err
+    # anything in the data set, not only the split being scored (the audit's train.npz)
+    for name in ("test.npz", "train.npz", "new-report.json"):
+        assert main([*base, "--csv", str(tiny_dataset / name)]) == 1
+        assert "is inside the input" in capsys.readouterr().err
+    # a prediction file that another suffix shadows, and the predictions record
+    shadowed = victim.with_suffix(".ply")
+    write_ply(shadowed, read_point_cloud(victim))
+    (pred / "predictions.json").write_text("{}")
+    before = _tree(tmp_path)
+    for target in (shadowed, pred / "predictions.json"):
+        assert main([*base, "--json", str(target), "--ignore-recorded-protocol"]) == 1
+        assert "would overwrite a file of the prediction folder" in capsys.readouterr().err
+    (pred / "predictions.json").unlink()
+    # an earlier report in the prediction folder may be replaced
+    report = pred / "metrics.json"
+    assert main([*base, "--json", str(report)]) == 0 and main([*base, "--json", str(report)]) == 0
+    report.unlink()
+    capsys.readouterr()
+    before = _tree(tmp_path)
     assert main([*base, "--json", str(pred)]) == 1
     assert "is a folder" in capsys.readouterr().err
     assert _tree(tmp_path) == before

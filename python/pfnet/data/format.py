@@ -203,7 +203,7 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     """
     if split not in SPLITS:
         raise DataError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
-    read_manifest(root)
+    manifest = read_manifest(root)
     path = Path(root) / f"{split}.npz"
     if not path.is_file():
         raise DataError(f"{path}: missing split file")
@@ -221,9 +221,15 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     except (OSError, ValueError, zipfile.BadZipFile, MemoryError) as err:
         raise DataError(f"{path}: cannot read the split: {err or type(err).__name__}") from err
     try:
-        return CloudSet(**arrays)
+        clouds = CloudSet(**arrays)
     except DataError as err:
         raise DataError(f"{path}: {err}") from err
+    declared = manifest.get("points")
+    if isinstance(declared, int) and len(clouds) and clouds.n_points != declared:
+        raise DataError(
+            f"{path}: clouds of {clouds.n_points} points, but the manifest says {declared}"
+        )
+    return clouds
 
 
 def _check_members(path: Path) -> None:
