@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from pfnet import reproduce
+from pfnet import study as reproduce
 from pfnet.cli import main
 from pfnet.errors import ConfigError
-from pfnet.reproduce import (
+from pfnet.study import (
     README_BEGIN,
     README_END,
     StudyRun,

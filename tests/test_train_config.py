@@ -87,7 +87,8 @@ def test_command_line_overrides_the_file_which_overrides_the_preset(tmp_path: Pa
         ("crop", "random", "crop must be one of viewpoint, sphere, multi"),
         ("seed", -1, "seed must be an integer >= 0"),
         ("workers", -2, "workers must be an integer >= 0"),
-        ("n_points", 4, "n_points must be an integer >= 8"),
+        ("n_points", 4, r"n_points must be an integer in \[8, 65536\]"),
+        ("n_points", 10**12, r"n_points must be an integer in \[8, 65536\]"),
         ("preset", "huge", "preset must be 'paper' or 'small'"),
     ],
 )

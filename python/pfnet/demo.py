@@ -155,14 +155,9 @@ def shipped_comparison(data_dir: Path, points: int) -> Path | None:
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet demo``."""
     from pfnet.data import prepare_dataset, read_manifest
-    from pfnet.evaluate import (
-        SCALE,
-        evaluate_predictions,
-        format_table,
-        render_evaluation_gallery,
-        write_json,
-    )
+    from pfnet.evaluate import SCALE, evaluate_predictions, render_evaluation_gallery
     from pfnet.predict import predict_split, resolve_device
+    from pfnet.reports import format_table, write_json
     from pfnet.shipped import describe
     from pfnet.training import train
     from pfnet.training.config import preset_config

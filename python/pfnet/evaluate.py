@@ -21,7 +21,6 @@ reported ×1000 as in the paper's tables.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import sys
@@ -233,56 +232,6 @@ def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:
     return clouds
 
 
-def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
-    """The paper-like table: per category Pred→GT / GT→Pred ×1000, n, CD-L2, CD-L1, F-score."""
-    from pfnet.metrics import summarize
-
-    summary = summary or summarize(evaluation.per_sample, evaluation.categories, scale=float(SCALE))
-    header = (
-        f"{'category':<16} {'n':>5} {'Pred→GT':>9} {'GT→Pred':>9} "
-        f"{'CD-L2':>9} {'CD-L1':>9} {'F@0.01':>7}"
-    )
-    lines = [header, "-" * len(header)]
-
-    def row(name: str, n: str, m: dict) -> str:
-        return (
-            f"{name:<16} {n:>5} {m['pred_to_gt']:>9.3f} {m['gt_to_pred']:>9.3f} "
-            f"{m['cd_l2']:>9.3f} {m['cd_l1'] * SCALE:>9.3f} {m['f_score']:>7.3f}"
-        )
-
-    for cat in sorted(summary["categories"]):
-        m = summary["categories"][cat]
-        lines.append(row(cat, str(int(m["n"])), m))
-    lines.append("-" * len(header))
-    lines.append(row("mean", str(len(evaluation.categories)), summary["mean"]))
-    return "\n".join(lines)
-
-
-def write_csv(path: Path, evaluation: Evaluation) -> None:
-    """Per-sample scores: category, name and the metrics (×1000 except the F-score)."""
-    from pfnet.io import atomic_path
-
-    keys = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="", encoding="utf-8") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(["category", "name", *keys, "f_score"])
-            ps = evaluation.per_sample
-            for i, (cat, name) in enumerate(
-                zip(evaluation.categories, evaluation.names, strict=True)
-            ):
-                values = [f"{ps[k][i] * SCALE:.6f}" for k in keys]
-                writer.writerow([cat, name, *values, f"{ps['f_score'][i]:.6f}"])
-
-
-def write_json(path: Path, report: dict) -> None:
-    """Write the ``--json`` report atomically."""
-    from pfnet.io import atomic_path
-
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-
-
 def render_evaluation_gallery(
     out: Path,
     evaluation: Evaluation,
@@ -299,53 +248,18 @@ def render_evaluation_gallery(
     ``columns`` (title -> prediction folder) draws several models' completions of the same
     samples side by side instead of ``pred_dir``'s alone.
     """
-    from pfnet.data import load_split, test_protocol_crop
-    from pfnet.io import read_point_cloud
-    from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
+    from pfnet.gallery import pick_gallery, render_completions
 
-    columns = columns or {"completion": pred_dir}
-    clouds = load_split(data_dir, split)
-    index = {
-        (str(c), str(n)): i
-        for i, (c, n) in enumerate(zip(clouds.category, clouds.name, strict=True))
-    }
     chosen = pick_gallery(evaluation.categories, count)
-    rows = [index[(evaluation.categories[k], evaluation.names[k])] for k in chosen]
-    points = np.asarray(clouds.points)
-    # Crop the whole split: sample i's viewpoint depends on its index in the split.
-    partial, _ = test_protocol_crop(points, missing_ratio)
-    files = {title: find_prediction_files(folder) for title, folder in columns.items()}
-    panel_rows = []
-    for i, k in zip(rows, chosen, strict=True):
-        key = f"{evaluation.categories[k]}/{evaluation.names[k]}"
-        panels = [("input", [(partial[i], PARTIAL_COLOR)])]
-        for title, found in files.items():
-            if key not in found:
-                raise DataError(f"{columns[title]} has no prediction for {key}")
-            completion = read_point_cloud(found[key])
-            panels.append((title, [(partial[i], PARTIAL_COLOR), (completion, PREDICTION_COLOR)]))
-        panels.append(("ground truth", [(points[i], GROUND_TRUTH_COLOR)]))
-        panel_rows.append((key, panels))
-    return render_panels(
+    return render_completions(
         out,
-        panel_rows,
-        views=2 if len(columns) == 1 else 1,
+        data_dir,
+        columns or {"completion": pred_dir},
+        split=split,
+        missing_ratio=missing_ratio,
+        keys=[(evaluation.categories[k], evaluation.names[k]) for k in chosen],
         title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing",
     )
-
-
-def pick_gallery(categories: list[str], count: int) -> list[int]:
-    """Indices of up to ``count`` samples taken round-robin over the categories (sorted)."""
-    by_cat: dict[str, list[int]] = {}
-    for i, cat in enumerate(categories):
-        by_cat.setdefault(cat, []).append(i)
-    queues = [by_cat[c] for c in sorted(by_cat)]
-    picked: list[int] = []
-    depth = 0
-    while len(picked) < count and any(depth < len(q) for q in queues):
-        picked += [q[depth] for q in queues if depth < len(q)][: count - len(picked)]
-        depth += 1
-    return picked
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -390,6 +304,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
     from pfnet.metrics import summarize
+    from pfnet.reports import format_table, write_csv, write_json
 
     if args.gallery is not None and args.gallery_count < 1:
         raise ConfigError(f"evaluate: --gallery-count must be at least 1, got {args.gallery_count}")

@@ -219,21 +219,19 @@ def render_prediction_gallery(
     out: Path, pred_dir: Path, data_dir: Path, *, split: str, missing_ratio: float, count: int
 ) -> Path:
     """Render ``count`` predicted samples (spread over the categories) as partial/pred/gt rows."""
-    from pfnet.data import load_split, test_protocol_crop
-    from pfnet.evaluate import pick_gallery
-    from pfnet.io import read_point_cloud
-    from pfnet.render import RenderSample, render_gallery
+    from pfnet.data import load_split
+    from pfnet.gallery import pick_gallery, render_completions
 
     clouds = load_split(data_dir, split)
     categories = [str(c) for c in clouds.category]
-    rows = pick_gallery(categories, count)
-    points = np.asarray(clouds.points)
-    # Crop the whole split: sample i's viewpoint depends on its index in the split.
-    partial, _ = test_protocol_crop(points, missing_ratio)
-    samples = []
-    for i in rows:
-        key = f"{categories[i]}/{clouds.name[i]}"
-        pred = read_point_cloud(Path(pred_dir) / f"{key}.npy")
-        samples.append(RenderSample(key, partial[i], pred, points[i]))
+    keys = [(categories[i], str(clouds.name[i])) for i in pick_gallery(categories, count)]
     title = f"{Path(pred_dir).name}: {split}, {missing_ratio:.0%} missing"
-    return render_gallery(out, samples, title=title)
+    return render_completions(
+        out,
+        data_dir,
+        {"completion": Path(pred_dir)},
+        split=split,
+        missing_ratio=missing_ratio,
+        keys=keys,
+        title=title,
+    )

@@ -172,14 +172,14 @@ def test_damaged_checkpoints_are_one_line_errors(tmp_path: Path, capsys) -> None
 def test_io_failures_are_one_line_errors(
     tmp_path: Path, tiny_dataset: Path, capsys, monkeypatch
 ) -> None:
-    import pfnet.evaluate
+    import pfnet.reports
 
     pred = write_predictions(tmp_path / "pred", tiny_dataset)
 
     def full_disk(*_args, **_kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "m.json"))
 
-    monkeypatch.setattr(pfnet.evaluate, "write_json", full_disk)
+    monkeypatch.setattr(pfnet.reports, "write_json", full_disk)
     args = ["evaluate", str(pred), "--data", str(tiny_dataset), "--json", str(tmp_path / "m.json")]
     assert main(args) == 1
     err = capsys.readouterr().err

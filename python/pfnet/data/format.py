@@ -239,7 +239,7 @@ def _check_members(path: Path) -> None:
     Members are stored uncompressed by :func:`write_dataset`; a compressed member is checked
     against its uncompressed size, which the zip directory records.
     """
-    from pfnet.io import check_npy_header
+    from pfnet.formats.npy import check_npy_header
 
     archive_size = path.stat().st_size
     with zipfile.ZipFile(path) as archive:

@@ -16,31 +16,28 @@ time is spent in training and validation steps.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import BatchSampler, DataLoader, DistributedSampler, Sampler, Subset
+from torch.utils.data import DataLoader, DistributedSampler, Subset
 from tqdm import tqdm
 
 from pfnet.checkpoint import read_checkpoint
 from pfnet.data.augment import Augmentation, up_axis_index
 from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError, DataError
-from pfnet.geometry import farthest_point_sample
 from pfnet.io import atomic_path, refuse_overlap
-from pfnet.models.layers import multi_resolution_indices
-from pfnet.models.pfnet import PRIMARY_POINTS, SECONDARY_POINTS
 from pfnet.training import distributed
-from pfnet.training.config import RESUMABLE_FIELDS, SaveSchedule, TrainConfig
+from pfnet.training.batches import CompletionCollate, EpochBatches
+from pfnet.training.config import SaveSchedule, TrainConfig
 from pfnet.training.distributed import DistContext
+from pfnet.training.resume import data_identity, resumed_config
 from pfnet.training.runlog import plot_curves, write_log
 from pfnet.training.saving import CheckpointWriter, cpu_snapshot
 from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
@@ -99,83 +96,6 @@ def train(
         distributed.teardown(context)
 
 
-class CompletionCollate:
-    """Stacks dataset items and adds the IFPS index sets the losses and encoders need.
-
-    Runs in data-loader workers, so the Rust sampling overlaps the training step.
-
-    Args:
-        multi_resolution: Add ``scale_indices`` (``(B, n // 2)`` IFPS of the partial cloud).
-        centre_targets: Add ``secondary_target`` (``(B, 128, 3)`` IFPS of the missing points)
-            and ``primary_target`` (its first 64 points, which are the 64-point IFPS).
-    """
-
-    def __init__(self, multi_resolution: bool, centre_targets: bool) -> None:
-        self.multi_resolution = multi_resolution
-        self.centre_targets = centre_targets
-
-    def __call__(self, items: list[dict[str, Any]]) -> dict[str, Any]:
-        """Collate a list of ``CompletionDataset`` items into a batch dict."""
-        batch: dict[str, Any] = {
-            key: torch.stack([item[key] for item in items])
-            for key in ("partial", "missing", "complete")
-        }
-        batch["category"] = [item["category"] for item in items]
-        batch["index"] = torch.tensor([int(item["index"]) for item in items])
-        if self.multi_resolution:
-            batch["scale_indices"] = torch.from_numpy(
-                multi_resolution_indices(batch["partial"].numpy())
-            )
-        if self.centre_targets:
-            missing = batch["missing"]
-            index = torch.from_numpy(
-                np.asarray(farthest_point_sample(missing.numpy(), SECONDARY_POINTS), np.int64)
-            )
-            secondary = torch.gather(missing, 1, index.unsqueeze(-1).expand(-1, -1, 3))
-            batch["secondary_target"] = secondary
-            batch["primary_target"] = secondary[:, :PRIMARY_POINTS].contiguous()
-        return batch
-
-
-class EpochBatches(Sampler[list[tuple[int, int]]]):
-    """Batches of ``(epoch, index)`` keys of one epoch, optionally without its first batches.
-
-    The epoch travels with every index because the data-loader workers live across epochs
-    and keep the dataset object they started with; ``skip`` leaves out the batches already
-    trained before a mid-epoch stop.
-
-    Args:
-        sampler: Shuffles (and, under DDP, shards) the indices; reseeded per epoch.
-        batch_size: Clouds per batch (the last batch may be smaller).
-    """
-
-    def __init__(self, sampler: DistributedSampler, batch_size: int) -> None:
-        self.sampler = sampler
-        self.batch_size = batch_size
-        self.epoch = 0
-        self.skip = 0
-
-    def set_epoch(self, epoch: int, skip: int = 0) -> None:
-        """Serve ``epoch``, leaving out its first ``skip`` batches."""
-        self.epoch = epoch
-        self.skip = skip
-        self.sampler.set_epoch(epoch)
-
-    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
-        batches = BatchSampler(self.sampler, self.batch_size, drop_last=False)
-        for i, batch in enumerate(batches):
-            if i >= self.skip:
-                yield [(self.epoch, index) for index in batch]
-
-    @property
-    def per_epoch(self) -> int:
-        """Batches in a whole epoch."""
-        return math.ceil(len(self.sampler) / self.batch_size)
-
-    def __len__(self) -> int:
-        return max(0, self.per_epoch - self.skip)
-
-
 class Trainer:
     """State of one training run; see :func:`train`."""
 
@@ -199,7 +119,7 @@ class Trainer:
         self.data_identity = data_identity(data_dir)
         if resume:
             state = read_checkpoint(out_dir / LAST, "cpu")
-            config = _resumed_config(config, state, out_dir / LAST)
+            config = resumed_config(config, state, out_dir / LAST)
             stored = state.get("data")  # absent in checkpoints of older pfnet versions
             if stored and stored.get("fingerprint") != self.data_identity["fingerprint"]:
                 raise ConfigError(
@@ -568,34 +488,3 @@ def _augmentation(config: TrainConfig, data_dir: Path) -> Augmentation | None:
         except ConfigError as err:
             raise ConfigError(f"augment_rotate: {err} ({data_dir})") from None
     return Augmentation(up_axis, config.augment_scale, config.augment_jitter)
-
-
-def data_identity(data_dir: Path) -> dict[str, str]:
-    """What a run records of its data set, so that ``--resume`` can refuse another one.
-
-    The fingerprint covers the manifest (source, options, seed, every shape's name and split)
-    and the split files' sizes; a data set moved or copied elsewhere keeps it.
-    """
-    digest = hashlib.sha256()
-    manifest = Path(data_dir) / "manifest.json"
-    if manifest.is_file():
-        digest.update(manifest.read_bytes())
-    for split in ("train", "val"):
-        path = Path(data_dir) / f"{split}.npz"
-        digest.update(f"{split}:{path.stat().st_size if path.is_file() else -1};".encode())
-    return {"path": str(Path(data_dir).resolve()), "fingerprint": digest.hexdigest()}
-
-
-def _resumed_config(config: TrainConfig, state: dict[str, Any], path: Path) -> TrainConfig:
-    """The stored config with the resumable fields of ``config``; refuse other changes."""
-    stored = TrainConfig.from_dict(state["config"], source=f"checkpoint {path}")
-    requested = config.to_dict()
-    for key, value in stored.to_dict().items():
-        if key in RESUMABLE_FIELDS or (key == "n_points" and requested[key] is None):
-            continue
-        if requested[key] != value:
-            raise ConfigError(
-                f"cannot change {key} when resuming: {path} was trained with {value!r}, "
-                f"got {requested[key]!r}"
-            )
-    return stored.replace(**{k: requested[k] for k in RESUMABLE_FIELDS})

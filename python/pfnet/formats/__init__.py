@@ -1,0 +1,45 @@
+"""The readers behind :func:`pfnet.io.read_point_cloud`, one module per family of formats.
+
+Each reader takes a path, returns a numeric ``(N, 3)`` array (any float dtype) and raises
+:class:`~pfnet.errors.DataError` naming the file for what it recognises as wrong; anything
+else a parser raises on hostile bytes is turned into a named "malformed file" error by
+``read_point_cloud``, the readers' single error boundary. Sizes a file declares are checked
+against the bytes it has before anything is allocated or walked.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import DataError
+
+
+def read_header(fh, file: Path, end: bytes, max_lines: int = 10_000) -> list[str]:
+    """Read text header lines up to and including ``end``; return them without it."""
+    lines: list[str] = []
+    for _ in range(max_lines):
+        raw = fh.readline()
+        if not raw:
+            raise DataError(f"{file}: truncated header (no {end.decode()!r} line)")
+        try:
+            line = raw.decode("ascii").strip()
+        except UnicodeDecodeError as err:
+            raise DataError(f"{file}: header is not ASCII text") from err
+        if raw.strip().startswith(end):
+            lines.append(line)
+            return lines
+        lines.append(line)
+    raise DataError(f"{file}: header longer than {max_lines} lines")
+
+
+def first_three_columns(file: Path, array: np.ndarray) -> np.ndarray:
+    """Check a 2-D numeric array with at least three columns and return its first three."""
+    if array.ndim != 2 or array.shape[1] < 3:
+        raise DataError(f"{file}: expected an (N, 3) array of points, got shape {array.shape}")
+    if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.number):
+        raise DataError(f"{file}: expected numeric coordinates, got dtype {array.dtype}")
+    if np.issubdtype(array.dtype, np.complexfloating):
+        raise DataError(f"{file}: expected real coordinates, got dtype {array.dtype}")
+    return array[:, :3]

@@ -1,0 +1,51 @@
+"""``.npy`` files, and the header check that ``.npz`` members share."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import DataError
+from pfnet.formats import first_three_columns
+
+
+def check_npy_header(name: str, fh, available: int) -> None:
+    """Refuse a ``.npy`` stream whose header claims more data than ``available`` bytes.
+
+    Reads the header from ``fh`` (positioned at the start) before numpy allocates anything:
+    a forged header claiming 10^12 points made ``np.load`` fail with ``MemoryError``.
+
+    Raises:
+        DataError: Naming ``name``, the declared shape and the bytes there are.
+    """
+    from numpy.lib import format as npy_format
+
+    try:
+        version = npy_format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = npy_format.read_array_header_1_0(fh)
+        else:
+            shape, _, dtype = npy_format.read_array_header_2_0(fh)
+    except (ValueError, EOFError) as err:
+        raise DataError(f"{name}: not a valid .npy array file ({err})") from None
+    needed = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if needed > available - fh.tell():
+        raise DataError(
+            f"{name}: the .npy header declares shape {shape} ({needed} bytes) but the file "
+            f"holds {max(available - fh.tell(), 0)} bytes of data"
+        )
+
+
+def read_npy(file: Path) -> np.ndarray:
+    with open(file, "rb") as fh:
+        check_npy_header(str(file), fh, file.stat().st_size)
+    try:
+        array = np.load(file, allow_pickle=False)
+    except ValueError as err:  # object arrays, bad headers, truncated data
+        raise DataError(f"{file}: not a valid .npy array file ({err})") from err
+    except EOFError as err:
+        raise DataError(f"{file}: not a valid .npy array file (empty or truncated)") from err
+    if not isinstance(array, np.ndarray):
+        raise DataError(f"{file}: not a .npy array file")
+    return first_three_columns(file, array)

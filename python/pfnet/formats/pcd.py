@@ -1,0 +1,163 @@
+"""PCD files (PCL): ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import DataError
+from pfnet.formats import read_header
+
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"}
+_PCD_TYPES.update({("I", s): f"i{s}" for s in (1, 2, 4, 8)})
+_PCD_TYPES.update({("U", s): f"u{s}" for s in (1, 2, 4, 8)})
+
+
+def read_pcd(file: Path) -> np.ndarray:
+    with open(file, "rb") as fh:
+        header = read_header(fh, file, b"DATA")
+        body = fh.read()
+    fields: dict[str, list[str]] = {}
+    for line in header:
+        words = line.split()
+        if not words or words[0].startswith("#"):
+            continue
+        fields[words[0].upper()] = words[1:]
+    for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
+        if key not in fields or not fields[key]:
+            raise DataError(f"{file}: PCD header has no {key} line")
+    names = fields["FIELDS"]
+    n = len(names)
+    counts = fields.get("COUNT", ["1"] * n)
+    if not (len(fields["SIZE"]) == len(fields["TYPE"]) == len(counts) == n):
+        raise DataError(f"{file}: PCD header FIELDS, SIZE, TYPE and COUNT differ in length")
+    try:
+        sizes = [int(s) for s in fields["SIZE"]]
+        counts_i = [int(c) for c in counts]
+        if "POINTS" in fields:
+            n_points = int(fields["POINTS"][0])
+        else:
+            width, height = int(fields["WIDTH"][0]), int(fields["HEIGHT"][0])
+            n_points = width * height if min(width, height) >= 0 else -1
+    except (ValueError, KeyError, IndexError):
+        raise DataError(f"{file}: PCD header has a malformed SIZE/COUNT/POINTS line") from None
+    if min(counts_i) < 1 or n_points < 0:
+        raise DataError(f"{file}: PCD header has a COUNT below 1 or a negative point count")
+    dtypes = []
+    for name, size, kind in zip(names, sizes, fields["TYPE"], strict=True):
+        key = (kind.upper(), size)
+        if key not in _PCD_TYPES:
+            raise DataError(f"{file}: unsupported PCD type {kind}{size} for field {name!r}")
+        dtypes.append("<" + _PCD_TYPES[key])
+    for axis in ("x", "y", "z"):
+        if axis not in names:
+            raise DataError(f"{file}: PCD file has no {axis!r} field")
+    columns = [names.index(a) for a in ("x", "y", "z")]
+    mode = fields["DATA"][0].lower()
+    if mode == "ascii":
+        points = _read_pcd_ascii(file, body, names, counts_i, n_points, columns)
+    elif mode == "binary":
+        dtype = np.dtype(
+            [
+                (f"f{i}", dt, (c,) if c > 1 else ())
+                for i, (dt, c) in enumerate(zip(dtypes, counts_i, strict=True))
+            ]
+        )
+        if len(body) < dtype.itemsize * n_points:
+            raise DataError(
+                f"{file}: truncated PCD data: {n_points} points need "
+                f"{dtype.itemsize * n_points} bytes, found {len(body)}"
+            )
+        table = np.frombuffer(body, dtype=dtype, count=n_points)
+        points = np.stack([_pcd_first(table[f"f{c}"]) for c in columns], axis=1)
+    elif mode == "binary_compressed":
+        points = _read_pcd_compressed(file, body, dtypes, counts_i, n_points, columns)
+    else:
+        raise DataError(f"{file}: unsupported PCD DATA mode {mode!r}")
+    points = np.asarray(points, dtype=np.float64)
+    return points[np.isfinite(points).all(axis=1)] if np.isnan(points).any() else points
+
+
+def _pcd_first(column: np.ndarray) -> np.ndarray:
+    return column[:, 0] if column.ndim == 2 else column
+
+
+def _read_pcd_ascii(file, body, names, counts, n_points, columns) -> np.ndarray:
+    starts = np.cumsum([0, *counts])
+    if n_points == 0:
+        return np.empty((0, 3))
+    lines = [ln.split() for ln in body.decode("ascii", errors="replace").splitlines()]
+    lines = [ln for ln in lines if ln]
+    if len(lines) < n_points:
+        raise DataError(f"{file}: truncated PCD data: {n_points} points, {len(lines)} lines")
+    try:
+        table = np.array(lines[:n_points], dtype=np.float64)
+    except ValueError:
+        raise DataError(f"{file}: malformed PCD ascii data (non-numeric or uneven rows)") from None
+    if n_points and (table.ndim != 2 or table.shape[1] < starts[-1]):
+        raise DataError(f"{file}: PCD ascii rows have fewer values than the FIELDS declare")
+    return table.reshape(n_points, -1)[:, [starts[c] for c in columns]]
+
+
+def _read_pcd_compressed(file, body, dtypes, counts, n_points, columns) -> np.ndarray:
+    if len(body) < 8:
+        raise DataError(f"{file}: truncated PCD binary_compressed data")
+    compressed, raw = (int(v) for v in np.frombuffer(body, "<u4", 2))
+    if len(body) < 8 + compressed:
+        raise DataError(f"{file}: truncated PCD binary_compressed data")
+    # binary_compressed stores the data field by field (all x, then all y, ...).
+    offsets = np.cumsum(
+        [0] + [np.dtype(d).itemsize * c * n_points for d, c in zip(dtypes, counts, strict=True)]
+    )
+    if raw != offsets[-1]:  # checked before decompressing anything
+        raise DataError(
+            f"{file}: PCD binary_compressed data declares {raw} bytes, the header's "
+            f"{n_points} points need {int(offsets[-1])}"
+        )
+    data = _lzf_decompress(file, body[8 : 8 + compressed], raw)
+    out = []
+    for c in columns:
+        block = np.frombuffer(data, dtypes[c], n_points * counts[c], int(offsets[c]))
+        out.append(block.reshape(n_points, counts[c])[:, 0])
+    return np.stack(out, axis=1)
+
+
+def _lzf_decompress(file: Path, src: bytes, size: int) -> bytes:
+    """Decompress LZF (liblzf's format, used by PCL's ``binary_compressed``)."""
+    out = bytearray()
+    i, n = 0, len(src)
+    try:
+        while i < n:
+            ctrl = src[i]
+            i += 1
+            if ctrl < 32:  # literal run of ctrl + 1 bytes
+                out += src[i : i + ctrl + 1]
+                i += ctrl + 1
+            else:  # back reference
+                length = ctrl >> 5
+                if length == 7:
+                    length += src[i]
+                    i += 1
+                ref = len(out) - ((ctrl & 0x1F) << 8) - src[i] - 1
+                i += 1
+                if ref < 0:
+                    raise IndexError
+                length += 2
+                if ref + length <= len(out):  # the common case: copy a slice at once
+                    out += out[ref : ref + length]
+                else:  # overlapping run: byte by byte
+                    for k in range(length):
+                        out.append(out[ref + k])
+            if len(out) > size:  # never expand beyond the declared size
+                raise DataError(
+                    f"{file}: corrupt PCD binary_compressed data (expands beyond the "
+                    f"declared {size} bytes)"
+                )
+    except IndexError:
+        raise DataError(f"{file}: corrupt PCD binary_compressed data") from None
+    if len(out) != size:
+        raise DataError(
+            f"{file}: corrupt PCD binary_compressed data ({len(out)} bytes, expected {size})"
+        )
+    return bytes(out)

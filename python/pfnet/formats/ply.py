@@ -1,0 +1,206 @@
+"""PLY files: ``ascii``, ``binary_little_endian`` and ``binary_big_endian``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import DataError
+from pfnet.formats import read_header
+
+# Rows of PLY elements with list properties are walked one by one in Python (about a second
+# per million): more than this many is refused rather than taking minutes.
+MAX_WALKED_ROWS = 2_000_000
+
+_PLY_TYPES: dict[str, str] = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+
+
+def _ply_type(file: Path, name: str) -> str:
+    try:
+        return _PLY_TYPES[name]
+    except KeyError:
+        raise DataError(f"{file}: unknown PLY property type {name!r}") from None
+
+
+def read_ply(file: Path) -> np.ndarray:
+    with open(file, "rb") as fh:
+        magic = fh.readline()
+        if magic.strip() != b"ply":
+            raise DataError(f"{file}: not a PLY file (first line is not 'ply')")
+        header = read_header(fh, file, b"end_header")
+        body = fh.read()
+    fmt = None
+    # Each element: (name, count, [(prop name, dtype, list count dtype or None)])
+    elements: list[tuple[str, int, list[tuple[str, str, str | None]]]] = []
+    for line in header[:-1]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            if len(words) < 2 or words[1] not in (
+                "ascii",
+                "binary_little_endian",
+                "binary_big_endian",
+            ):
+                raise DataError(f"{file}: unsupported PLY format line {line!r}")
+            fmt = words[1]
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit() or len(words[2]) > 15:
+                raise DataError(f"{file}: malformed PLY element line {line[:80]!r}")
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            if not elements:
+                raise DataError(f"{file}: PLY property before any element: {line!r}")
+            if len(words) == 5 and words[1] == "list":
+                prop = (words[4], _ply_type(file, words[3]), _ply_type(file, words[2]))
+                if prop[2][0] not in "iu":
+                    raise DataError(f"{file}: PLY list length type must be an integer: {line!r}")
+            elif len(words) == 3:
+                prop = (words[2], _ply_type(file, words[1]), None)
+            else:
+                raise DataError(f"{file}: malformed PLY property line {line!r}")
+            if prop[0] in [p[0] for p in elements[-1][2]]:
+                raise DataError(f"{file}: PLY property {prop[0]!r} declared twice: {line!r}")
+            elements[-1][2].append(prop)
+        else:
+            raise DataError(f"{file}: unexpected PLY header line {line!r}")
+    if fmt is None:
+        raise DataError(f"{file}: PLY header has no format line")
+    names = [e[0] for e in elements]
+    if "vertex" not in names:
+        raise DataError(f"{file}: PLY file has no vertex element")
+    vertex_index = names.index("vertex")
+    props = elements[vertex_index][2]
+    prop_names = [p[0] for p in props]
+    for axis in ("x", "y", "z"):
+        if axis not in prop_names:
+            raise DataError(f"{file}: PLY vertex element has no {axis!r} property")
+    for name, _dtype, list_type in props:
+        if name in ("x", "y", "z") and list_type is not None:
+            raise DataError(f"{file}: PLY vertex property {name!r} is a list")
+    if fmt == "ascii":
+        return _read_ply_ascii(file, body, elements, vertex_index)
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    return _read_ply_binary(file, body, elements, vertex_index, endian)
+
+
+def _read_ply_ascii(file, body: bytes, elements, vertex_index: int) -> np.ndarray:
+    lines = body.decode("ascii", errors="replace").splitlines()
+    lines = [ln for ln in lines if ln.strip()]
+    start = sum(count for _, count, _ in elements[:vertex_index])
+    name, count, props = elements[vertex_index]
+    if len(lines) < start + count:
+        raise DataError(
+            f"{file}: truncated PLY data: expected {start + count} element lines before the "
+            f"end of the vertices, found {len(lines)}"
+        )
+    columns = [p[0] for p in props]
+    if count == 0:
+        return np.empty((0, 3))
+    if any(p[2] is not None for p in props):
+        # A list property in the vertex element: parse each line on its own.
+        out = np.empty((count, 3), dtype=np.float64)
+        for i, line in enumerate(lines[start : start + count]):
+            values = line.split()
+            pos, row = 0, {}
+            try:
+                for pname, _, list_type in props:
+                    if list_type is None:
+                        row[pname] = float(values[pos])
+                        pos += 1
+                    else:
+                        length = int(values[pos])
+                        if length < 0:
+                            raise ValueError
+                        pos += length + 1
+                out[i] = (row["x"], row["y"], row["z"])
+            except (ValueError, IndexError):
+                raise DataError(f"{file}: malformed PLY vertex line {start + i + 1}") from None
+        return out
+    try:
+        table = np.array([line.split() for line in lines[start : start + count]], dtype=np.float64)
+    except ValueError:
+        raise DataError(
+            f"{file}: malformed PLY vertex data (non-numeric values or uneven rows)"
+        ) from None
+    if table.ndim != 2 or table.shape[1] < len(columns):
+        raise DataError(f"{file}: PLY vertex lines have fewer values than properties")
+    return table[:, [columns.index("x"), columns.index("y"), columns.index("z")]]
+
+
+def _read_ply_binary(file, body: bytes, elements, vertex_index: int, endian: str) -> np.ndarray:
+    offset = 0
+    for name, count, props in elements[: vertex_index + 1]:
+        is_vertex = name == "vertex"
+        if all(p[2] is None for p in props):
+            dtype = np.dtype([(p[0], endian + p[1]) for p in props])
+            size = dtype.itemsize * count
+            if offset + size > len(body):
+                raise DataError(
+                    f"{file}: truncated PLY data: element {name!r} needs {size} bytes, "
+                    f"{max(len(body) - offset, 0)} left"
+                )
+            if is_vertex:
+                table = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
+                return np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float64)
+            offset += size
+            continue
+        # Elements with list properties have variable-size rows: walk them one by one. Every
+        # row takes at least its scalars and list lengths, so a count the bytes left cannot
+        # hold is refused before the walk (a forged count would otherwise loop for hours).
+        if count > MAX_WALKED_ROWS:
+            raise DataError(
+                f"{file}: PLY element {name!r} has {count} rows with list properties before "
+                f"the vertices are read; pfnet walks at most {MAX_WALKED_ROWS} (write the "
+                "vertex element first)"
+            )
+        least = sum(np.dtype(p[2] if p[2] is not None else p[1]).itemsize for p in props)
+        if count * least > len(body) - offset:
+            raise DataError(
+                f"{file}: truncated PLY data: element {name!r} declares {count} rows of at "
+                f"least {least} bytes, {max(len(body) - offset, 0)} bytes left"
+            )
+        coords = np.empty((count, 3), dtype=np.float64) if is_vertex else None
+        for i in range(count):
+            row: dict[str, float] = {}
+            for pname, ptype, list_type in props:
+                if list_type is not None:
+                    ldt = np.dtype(endian + list_type)
+                    if offset + ldt.itemsize > len(body):
+                        raise DataError(f"{file}: truncated PLY data in element {name!r}")
+                    n = int(np.frombuffer(body, ldt, 1, offset)[0])
+                    if n < 0:
+                        raise DataError(f"{file}: negative list length {n} in element {name!r}")
+                    offset += ldt.itemsize + n * np.dtype(ptype).itemsize
+                else:
+                    pdt = np.dtype(endian + ptype)
+                    if offset + pdt.itemsize > len(body):
+                        raise DataError(f"{file}: truncated PLY data in element {name!r}")
+                    if is_vertex:
+                        row[pname] = float(np.frombuffer(body, pdt, 1, offset)[0])
+                    offset += pdt.itemsize
+            if coords is not None:
+                coords[i] = (row["x"], row["y"], row["z"])
+        if offset > len(body):
+            raise DataError(f"{file}: truncated PLY data in element {name!r}")
+        if coords is not None:
+            return coords
+    raise DataError(f"{file}: PLY file has no vertex element")  # unreachable: checked above

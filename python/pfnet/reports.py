@@ -1,0 +1,60 @@
+"""An evaluation as text and files: the paper's table, the ``--csv`` per-sample scores and the
+``--json`` report (schema in the README)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from pfnet.evaluate import SCALE, Evaluation
+
+
+def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
+    """The paper-like table: per category Pred→GT / GT→Pred ×1000, n, CD-L2, CD-L1, F-score."""
+    from pfnet.metrics import summarize
+
+    summary = summary or summarize(evaluation.per_sample, evaluation.categories, scale=float(SCALE))
+    header = (
+        f"{'category':<16} {'n':>5} {'Pred→GT':>9} {'GT→Pred':>9} "
+        f"{'CD-L2':>9} {'CD-L1':>9} {'F@0.01':>7}"
+    )
+    lines = [header, "-" * len(header)]
+
+    def row(name: str, n: str, m: dict) -> str:
+        return (
+            f"{name:<16} {n:>5} {m['pred_to_gt']:>9.3f} {m['gt_to_pred']:>9.3f} "
+            f"{m['cd_l2']:>9.3f} {m['cd_l1'] * SCALE:>9.3f} {m['f_score']:>7.3f}"
+        )
+
+    for cat in sorted(summary["categories"]):
+        m = summary["categories"][cat]
+        lines.append(row(cat, str(int(m["n"])), m))
+    lines.append("-" * len(header))
+    lines.append(row("mean", str(len(evaluation.categories)), summary["mean"]))
+    return "\n".join(lines)
+
+
+def write_csv(path: Path, evaluation: Evaluation) -> None:
+    """Per-sample scores: category, name and the metrics (×1000 except the F-score)."""
+    from pfnet.io import atomic_path
+
+    keys = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(["category", "name", *keys, "f_score"])
+            ps = evaluation.per_sample
+            for i, (cat, name) in enumerate(
+                zip(evaluation.categories, evaluation.names, strict=True)
+            ):
+                values = [f"{ps[k][i] * SCALE:.6f}" for k in keys]
+                writer.writerow([cat, name, *values, f"{ps['f_score'][i]:.6f}"])
+
+
+def write_json(path: Path, report: dict) -> None:
+    """Write the ``--json`` report atomically."""
+    from pfnet.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")

@@ -1,0 +1,23 @@
+"""The paper's published numbers the study is compared with (Huang et al., CVPR 2020)."""
+
+from __future__ import annotations
+
+# The paper's figures (×1000) the tables are compared with (DESIGN.md §5).
+PAPER_ORDER = ("pfnet", "pfnet-vanilla", "mr-cmlp", "cmlp", "mlp")
+
+
+PAPER_TABLE4_CHAIR = {
+    "pfnet-vanilla": (1.772, 1.432),
+    "mr-cmlp": (2.521, 2.275),
+    "cmlp": (2.587, 2.306),
+    "mlp": (2.692, 2.384),
+}
+
+
+PAPER_TABLE2_MEAN = {"missing": (2.426, 2.117), "whole": (0.555, 0.458)}
+
+
+PAPER_TABLE2_CHAIR_MISSING = {"pfnet": (2.074, 1.824), "pfnet-vanilla": (1.998, 1.828)}
+
+
+PAPER_TABLE5_AIRPLANE = {0.25: (0.727, 0.542), 0.5: (0.727, 0.520), 0.75: (0.748, 0.623)}
