@@ -476,3 +476,23 @@ def test_real_sweethome3d_catalogues(tmp_path: Path) -> None:
         "Scopia.sh3f",
     }
     assert "Creative Commons Attribution 3.0" in licenses["Scopia.sh3f"]["license"]
+
+
+def test_a_catalogue_member_that_inflates_too_far_is_skipped_as_it_is_read(
+    tmp_path: Path, sh3f: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pfnet.data.sources import sweethome3d
+
+    monkeypatch.setattr(sweethome3d, "MAX_MODEL_BYTES", 200_000)
+    bomb = sh3f.parent / "Bomb.sh3f"
+    with zipfile.ZipFile(sh3f) as original, zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as out:
+        for info in original.infolist():
+            data = original.read(info)
+            if info.filename == "test/chair1/chair1.obj":  # ~1 MB of comments, ~1 KB packed
+                data = b"# padding\n" * 100_000 + data
+            out.writestr(info.filename, data)
+    sh3f.unlink()
+    report = _prepare(bomb.parent, tmp_path / "out", test_fraction=0.0, val_fraction=0.0)
+    reasons = {p.split(":/")[1]: r for p, r in report.skipped}
+    assert "bytes unpacked, above the 200000 accepted" in reasons["test/chair1/chair1.obj"]
+    assert "test_chair1" not in _all_names(tmp_path / "out")

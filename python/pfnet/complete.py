@@ -152,22 +152,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
-    from tqdm import tqdm
-
     from pfnet.checkpoint import load_checkpoint
-    from pfnet.io import read_point_cloud, refuse_input_overwrite
+    from pfnet.io import refuse_input_overwrite
     from pfnet.predict import resolve_device
 
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
     stems: dict[str, Path] = {}
     for path in args.inputs:
-        if path.stem in stems and stems[path.stem] != path:
+        # casefold: Scan.npy and scan.npy would write one file on macOS and Windows
+        stem = path.stem.casefold()
+        if stem in stems and stems[stem] != path:
             raise ConfigError(
-                f"inputs {stems[path.stem]} and {path} would both write "
+                f"inputs {stems[stem]} and {path} would both write "
                 f"{path.stem}_completed.ply; rename one or complete them separately"
             )
-        stems[path.stem] = path
+        stems[stem] = path
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the outputs")
     inputs = list(dict.fromkeys(args.inputs))
@@ -177,7 +177,29 @@ def run(args: argparse.Namespace) -> int:
     )
     device = resolve_device(args.device)
     model, _ = load_checkpoint(args.checkpoint, device=device)
+    created = not args.out.exists()
     args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        done, failed = _complete_all(args, model, inputs, device)
+    except KeyboardInterrupt:
+        if created and not any(args.out.iterdir()):
+            args.out.rmdir()  # an interrupted first batch leaves no empty folder behind
+        raise
+    print(
+        f"completed {done} of {len(inputs)} file(s) into {args.out} "
+        f"(<stem>_missing.ply and <stem>_completed.ply)"
+    )
+    if failed:
+        print(f"pfnet complete: {len(failed)} file(s) could not be read", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _complete_all(args: argparse.Namespace, model, inputs: list[Path], device: str):
+    """Complete ``inputs`` batch by batch; return (files done, messages of files skipped)."""
+    from tqdm import tqdm
+
+    from pfnet.io import read_point_cloud
 
     failed: list[str] = []
     done = 0
@@ -203,11 +225,4 @@ def run(args: argparse.Namespace) -> int:
                 done += 1
                 progress.update(1)
     progress.close()
-    print(
-        f"completed {done} of {len(inputs)} file(s) into {args.out} "
-        f"(<stem>_missing.ply and <stem>_completed.ply)"
-    )
-    if failed:
-        print(f"pfnet complete: {len(failed)} file(s) could not be read", file=sys.stderr)
-        return 2
-    return 0
+    return done, failed

@@ -303,6 +303,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
+    from pfnet.io import check_report_path
     from pfnet.metrics import summarize
     from pfnet.reports import format_table, write_csv, write_json
 
@@ -311,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
     args.missing_ratio = recorded_protocol(args)
     for flag in ("json", "csv", "gallery"):
         if getattr(args, flag) is not None:  # checked before scoring, not after
-            check_report_path(getattr(args, flag), args.pred, args.data, flag=f"--{flag}")
+            check_report_path(getattr(args, flag), args.pred, [args.data], flag=f"--{flag}")
     evaluation = evaluate_predictions(
         args.pred,
         args.data,
@@ -354,33 +355,6 @@ def run(args: argparse.Namespace) -> int:
         )
         return 2
     return 0
-
-
-def check_report_path(output: Path, pred_dir: Path, data_dir: Path, *, flag: str) -> None:
-    """Refuse a report path that would replace part of the inputs.
-
-    Nothing may be written inside the data set; inside the prediction folder a report may
-    replace an earlier report, never a prediction file (of any suffix, matched or not), the
-    ``predictions.json`` record or a hidden file.
-
-    Raises:
-        ConfigError: Naming the flag and the file.
-    """
-    from pfnet.io import refuse_input_overwrite, refuse_overlap
-
-    refuse_input_overwrite([output], [], flag=flag)  # not a folder
-    refuse_overlap(output, [data_dir], flag=flag)
-    target = Path(output).resolve()
-    if target.is_relative_to(Path(pred_dir).resolve()) and target.exists():
-        if (
-            target.suffix.lower() in PREDICTION_SUFFIXES
-            or target.name == "predictions.json"
-            or target.name.startswith(".")
-        ):
-            raise ConfigError(
-                f"{flag}: writing {output} would overwrite a file of the prediction folder "
-                f"{pred_dir}; choose another name"
-            )
 
 
 def recorded_protocol(args: argparse.Namespace) -> float:

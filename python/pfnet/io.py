@@ -104,6 +104,41 @@ def refuse_input_overwrite(
             )
 
 
+def check_report_path(
+    output: str | os.PathLike[str],
+    pred_dir: str | os.PathLike[str],
+    inputs: Iterable[str | os.PathLike[str]],
+    *,
+    flag: str,
+) -> None:
+    """Refuse a report or picture path that would replace part of a command's inputs.
+
+    Nothing may be written inside or over ``inputs`` (data sets, checkpoints); inside the
+    prediction folder ``pred_dir`` a report may replace an earlier report, never a point
+    cloud file (matched or not), the ``predictions.json`` record or a hidden file.
+
+    Raises:
+        ConfigError: Naming the flag and the file.
+    """
+    refuse_input_overwrite([output], [], flag=flag)  # not a folder
+    for item in inputs:
+        if Path(item).is_file():
+            refuse_input_overwrite([output], [item], flag=flag)
+        else:
+            refuse_overlap(output, [item], flag=flag)
+    target = Path(output).resolve()
+    if target.is_relative_to(Path(pred_dir).resolve()) and target.exists():
+        if (
+            target.suffix.lower() in POINT_CLOUD_SUFFIXES
+            or target.name == "predictions.json"
+            or target.name.startswith(".")
+        ):
+            raise ConfigError(
+                f"{flag}: writing {output} would overwrite a file of the prediction folder "
+                f"{pred_dir}; choose another name"
+            )
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` that replaces ``path`` when the block succeeds.

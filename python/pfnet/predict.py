@@ -187,6 +187,12 @@ def run(args: argparse.Namespace) -> int:
     """Run ``pfnet predict``."""
     if args.gallery is not None and args.gallery_count < 1:
         raise ConfigError(f"--gallery-count must be at least 1, got {args.gallery_count}")
+    if args.gallery is not None:  # before predicting: never over the data or the checkpoint
+        from pfnet.io import check_report_path
+        from pfnet.shipped import resolve_checkpoint
+
+        inputs = [args.data, resolve_checkpoint(args.checkpoint)]
+        check_report_path(args.gallery, args.out, inputs, flag="--gallery")
     info = predict_split(
         args.checkpoint,
         args.data,

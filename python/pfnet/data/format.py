@@ -278,8 +278,9 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
             raise DataError(
                 f"{path}: already exists and is not empty (pass --overwrite to replace it)"
             )
-        # --overwrite deletes the folder: only ever an earlier data set, never a folder of
-        # the user's (the source's parent, a home directory) named by mistake.
+        # --overwrite deletes the folder: only ever an earlier data set and nothing else,
+        # never a folder of the user's (the source's parent, a home directory, a data set
+        # the user added notes to) named by mistake.
         try:
             read_manifest(path)
         except DataError:
@@ -287,7 +288,16 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
                 f"{path}: is not a pfnet data set (no readable {MANIFEST_NAME}); --overwrite "
                 "only replaces a folder that pfnet prepare wrote"
             ) from None
-    return path
+        ours = {MANIFEST_NAME, *(f"{split}.npz" for split in SPLITS)}
+        others = sorted(p.name for p in path.iterdir() if p.name not in ours)
+        if others:
+            raise DataError(
+                f"{path}: holds files pfnet prepare did not write ({', '.join(others[:3])}"
+                f"{', ...' if len(others) > 3 else ''}); --overwrite would delete them, so "
+                "move them out first or choose another --out"
+            )
+    # Replace the folder a symbolic link names, not the link.
+    return path.resolve() if path.is_symlink() else path
 
 
 def write_dataset(

@@ -13,6 +13,8 @@ _SPLIT = re.compile(r"[,\s]+")
 
 
 def _parse_floats(tokens: list[str]) -> list[float] | None:
+    if any("_" in t for t in tokens):  # float() reads "1_0" as 10
+        return None
     try:
         return [float(t) for t in tokens]
     except ValueError:
@@ -21,17 +23,15 @@ def _parse_floats(tokens: list[str]) -> list[float] | None:
 
 def read_text(file: Path) -> np.ndarray:
     try:
-        text = file.read_text(encoding="utf-8")
+        text = file.read_text(encoding="utf-8-sig")  # a byte-order mark is not a point
     except UnicodeDecodeError as err:
         raise DataError(f"{file}: not a text file (cannot decode as UTF-8)") from err
     rows: list[list[str]] = []
     line_numbers: list[int] = []
     for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith(("#", "//")):
+        line = raw.split("#", 1)[0].strip()  # comments, whole-line or after the values
+        if not line or line.startswith("//"):
             continue
-        if "_" in line:  # float() would read "1_0" as 10
-            raise DataError(f"{file}: line {number} is not numeric: {line[:60]!r}")
         rows.append([t for t in _SPLIT.split(line) if t])
         line_numbers.append(number)
     if rows:
@@ -39,13 +39,13 @@ def read_text(file: Path) -> np.ndarray:
         if len(first) == 1 and first[0].isdigit() and len(rows) > 1:
             # Leica .pts: the first line is the number of points.
             rows, line_numbers = rows[1:], line_numbers[1:]
-        elif _parse_floats(first) is None:
-            # A header of column names such as "x,y,z".
+        elif all(_parse_floats([token]) is None for token in first):
+            # A header of column names such as "x,y,z" (no value in it is a number).
             rows, line_numbers = rows[1:], line_numbers[1:]
     if not rows:
         raise DataError(f"{file}: the file holds no points")
     widths = {len(r) for r in rows}
-    if len(widths) == 1 and min(widths) >= 3:
+    if len(widths) == 1 and min(widths) >= 3 and not any("_" in t for r in rows for t in r):
         # Fast path: every line has the same number of columns.
         try:
             table = np.array([t for r in rows for t in r], dtype=np.float64)

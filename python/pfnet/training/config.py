@@ -213,6 +213,9 @@ def preset_config(name: str) -> TrainConfig:
     return PRESETS[name]
 
 
+MAX_CONFIG_BYTES = 1 << 20  # a config is a few hundred bytes of TOML
+
+
 def load_config(path: str | Path, *, preset: str | None = None) -> TrainConfig:
     """Read a TOML file of ``TrainConfig`` keys on top of a preset.
 
@@ -223,7 +226,11 @@ def load_config(path: str | Path, *, preset: str | None = None) -> TrainConfig:
         ConfigError: Unreadable file, bad TOML, unknown keys or bad values (naming the file).
     """
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO or /dev/zero would hang or never end
+        raise ConfigError(f"config file {path} is not a regular file")
     try:
+        if path.stat().st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"config file {path} is larger than {MAX_CONFIG_BYTES} bytes")
         with path.open("rb") as fh:
             data = tomllib.load(fh)
     except FileNotFoundError:

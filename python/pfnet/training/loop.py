@@ -37,7 +37,7 @@ from pfnet.training import distributed
 from pfnet.training.batches import CompletionCollate, EpochBatches
 from pfnet.training.config import SaveSchedule, TrainConfig
 from pfnet.training.distributed import DistContext
-from pfnet.training.resume import data_identity, resumed_config
+from pfnet.training.resume import check_resumable, data_identity, resumed_config
 from pfnet.training.runlog import plot_curves, write_log
 from pfnet.training.saving import CheckpointWriter, cpu_snapshot
 from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
@@ -119,6 +119,7 @@ class Trainer:
         self.data_identity = data_identity(data_dir)
         if resume:
             state = read_checkpoint(out_dir / LAST, "cpu")
+            check_resumable(state, out_dir / LAST)
             config = resumed_config(config, state, out_dir / LAST)
             stored = state.get("data")  # absent in checkpoints of older pfnet versions
             if stored and stored.get("fingerprint") != self.data_identity["fingerprint"]:
@@ -189,7 +190,13 @@ class Trainer:
         self._last_plot = -math.inf
         self._epoch_started = time.perf_counter()
         if state is not None:
-            self._load_state(state)
+            try:
+                self._load_state(state)
+            except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as err:
+                raise DataError(
+                    f"{out_dir / LAST} is damaged and cannot be resumed ({type(err).__name__}: "
+                    f"{str(err)[:200]})"
+                ) from None
 
     @property
     def global_step(self) -> int:

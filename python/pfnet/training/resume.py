@@ -6,7 +6,9 @@ import hashlib
 from pathlib import Path
 from typing import Any
 
-from pfnet.errors import ConfigError
+import torch
+
+from pfnet.errors import ConfigError, DataError
 from pfnet.training.config import RESUMABLE_FIELDS, TrainConfig
 
 
@@ -39,3 +41,42 @@ def resumed_config(config: TrainConfig, state: dict[str, Any], path: Path) -> Tr
                 f"got {requested[key]!r}"
             )
     return stored.replace(**{k: requested[k] for k in RESUMABLE_FIELDS})
+
+
+# More epochs than any run trains: a larger stored counter is a damaged or forged file.
+MAX_EPOCHS = 1_000_000
+
+
+def check_resumable(state: dict[str, Any], path: Path) -> None:
+    """Refuse a ``last.pt`` that is not a whole, finite training state.
+
+    A plain model checkpoint copied over ``last.pt`` (a ``KeyError`` traceback before), NaN
+    weights (a run that would train on NaN to the end with exit 0) and forged counters are
+    named in one line.
+
+    Raises:
+        DataError: What is missing or wrong, naming ``path``.
+    """
+    needed = ("optimizer_g", "scheduler_g", "epoch", "batches_done", "epoch_sums", "history")
+    missing = [key for key in (*needed, "best_metric", "rng", "world_size") if key not in state]
+    if missing:
+        raise DataError(
+            f"{path} is not a training state to resume (no {', '.join(missing)}): "
+            "a model file, or damaged"
+        )
+    for key in ("epoch", "batches_done", "world_size"):
+        value = state[key]
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= MAX_EPOCHS:
+            raise DataError(f"{path} has an impossible {key} ({value!r}): damaged or forged")
+    for part in ("model", "discriminator"):
+        weights = state.get(part) or {}
+        broken = [
+            name
+            for name, value in weights.items()
+            if isinstance(value, torch.Tensor) and not value.isfinite().all()
+        ]
+        if broken:
+            raise DataError(
+                f"{path} holds NaN or infinite {part} weights (e.g. {broken[0]}): the run "
+                "diverged; start again from an earlier checkpoint"
+            )

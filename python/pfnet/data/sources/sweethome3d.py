@@ -176,7 +176,7 @@ def _catalogues(source: Path) -> list[Path]:
 def _read_catalogue(path: Path) -> dict[str, str]:
     try:
         with zipfile.ZipFile(path) as archive:
-            raw = archive.read(CATALOGUE_FILE)
+            raw = read_member(archive, CATALOGUE_FILE, MAX_CATALOGUE_BYTES)
     except KeyError as err:
         raise DataError(f"{path}: not a furniture catalogue (no {CATALOGUE_FILE})") from err
     except (OSError, zipfile.BadZipFile) as err:
@@ -267,6 +267,29 @@ def _rotation(value: str | None) -> tuple[float, ...] | None:
     return matrix if len(matrix) == 9 else None
 
 
+# A catalogue's largest OBJ is a few MB; a member that inflates beyond these is refused as
+# it is read, whatever its header claims (an 820 KB zip bomb once took 9 GB of memory).
+MAX_MODEL_BYTES = 256 << 20
+MAX_CATALOGUE_BYTES = 16 << 20
+
+
+def read_member(archive: zipfile.ZipFile, name: str, limit: int) -> bytes:
+    """The bytes of ``name`` in ``archive``, refusing more than ``limit`` of them.
+
+    Raises:
+        KeyError: No such member.
+        DataError: The member declares or inflates to more than ``limit`` bytes.
+    """
+    info = archive.getinfo(name)
+    if info.file_size > limit:
+        raise DataError(f"{name} is {info.file_size} bytes unpacked, above the {limit} accepted")
+    with archive.open(info) as member:
+        data = member.read(limit + 1)  # the directory's size is data too: cap the read
+    if len(data) > limit:
+        raise DataError(f"{name} inflates beyond the {limit} bytes accepted")
+    return data
+
+
 @functools.lru_cache(maxsize=8)
 def _open_archive(path: str, version: tuple[int, int]) -> zipfile.ZipFile:
     return zipfile.ZipFile(path)
@@ -293,7 +316,7 @@ def load_model(path: str, member: str, rotation: tuple[float, ...] | None) -> Ge
     if not member.lower().endswith(".obj"):
         raise DataError(f"unsupported model format {Path(member).suffix!r} (only OBJ is read)")
     try:
-        data = _archive(path).read(member)
+        data = read_member(_archive(path), member, MAX_MODEL_BYTES)
     except KeyError as err:
         raise DataError("the model file is not in the catalogue") from err
     vertices, faces = parse_obj(data)

@@ -1,0 +1,150 @@
+"""The second hostile audit's findings: pictures over inputs, unbounded config reads, damaged
+resume states, --overwrite and user files, symlinked outputs, case-only name clashes, text
+files with a byte-order mark or trailing comments."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from forge import write_predictions
+
+from pfnet.cli import main
+from pfnet.io import read_point_cloud, write_ply
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.fixture
+def checkpoint(tmp_path: Path) -> Path:
+    pytest.importorskip("torch")
+    from pfnet.checkpoint import save_checkpoint
+    from pfnet.models import build_model
+    from pfnet.training.config import preset_config
+
+    config = preset_config("small").replace(n_points=512, width=0.125)
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, {"config": config.to_dict(), "model": build_model(config).state_dict()})
+    return path
+
+
+def test_predict_gallery_never_lands_on_its_inputs(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
+) -> None:
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    pred = write_predictions(tmp_path / "pred", data)
+    victim = next(pred.rglob("*.npy"))
+    before = _tree(tmp_path)
+    base = ["predict", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(pred)]
+    for gallery, message in (
+        (data / "test.npz", "is inside the input"),
+        (data / "g.png", "is inside the input"),
+        (checkpoint, "would overwrite the input"),
+        (victim, "would overwrite a file of the prediction folder"),
+    ):
+        assert main([*base, "--device", "cpu", "--gallery", str(gallery)]) == 1
+        assert message in capsys.readouterr().err
+    assert _tree(tmp_path) == before
+
+
+def test_config_files_that_never_end_are_refused(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.toml"
+    big.write_text("# " + "x" * (2 << 20))
+    base = ["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "run")]
+    for path, message in (
+        ("/dev/zero", "not a regular file"),
+        (fifo, "not a regular file"),
+        (big, "larger than"),
+    ):
+        assert main([*base, "--config", str(path)]) == 1
+        assert message in capsys.readouterr().err
+
+
+def test_damaged_training_states_are_refused_before_resuming(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
+) -> None:
+    torch = pytest.importorskip("torch")
+    run = tmp_path / "run"
+    args = ["train", "--data", str(tiny_dataset), "--out", str(run), "--device", "cpu"]
+    assert main([*args, "--preset", "small", "--width", "0.125", "--epochs", "1"]) == 0
+    good = torch.load(run / "last.pt", weights_only=True)
+    capsys.readouterr()
+    resume = [*args, "--resume", "--epochs", "2"]
+
+    shutil.copy(checkpoint, run / "last.pt")  # a model file where a training state belongs
+    assert main(resume) == 1
+    assert "is not a training state to resume" in capsys.readouterr().err
+
+    for change, message in (
+        (lambda s: s["model"][next(iter(s["model"]))].fill_(float("nan")), "NaN or infinite"),
+        (lambda s: s.__setitem__("epoch", 10**12), "impossible epoch"),
+        (lambda s: s.__setitem__("rng", {"torch": "not a state"}), "is damaged"),
+    ):
+        state = {k: (dict(v) if isinstance(v, dict) else v) for k, v in good.items()}
+        state["model"] = {k: v.clone() for k, v in good["model"].items()}
+        change(state)
+        torch.save(state, run / "last.pt")
+        assert main(resume) == 1
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+
+
+def test_overwrite_keeps_the_users_files_and_follows_a_symlink(tmp_path: Path, capsys) -> None:
+    args = ["prepare", "procedural", "--count", "2", "--points", "64", "--overwrite"]
+    data = tmp_path / "data"
+    assert main([*args, "--out", str(data)]) == 0
+    (data / "notes.txt").write_text("mine")
+    assert main([*args, "--out", str(data)]) == 1
+    assert "holds files pfnet prepare did not write (notes.txt)" in capsys.readouterr().err
+    assert (data / "notes.txt").read_text() == "mine"
+    # a forged two-key manifest does not make a folder of the user's replaceable
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "manifest.json").write_text('{"format": "pfnet-completion-dataset", "version": 1}')
+    (mine / "thesis.tex").write_text("work")
+    assert main([*args, "--out", str(mine)]) == 1
+    assert (mine / "thesis.tex").read_text() == "work"
+    capsys.readouterr()
+    # --out through a symbolic link: the folder it names is replaced, the link stays a link
+    (data / "notes.txt").unlink()
+    link = tmp_path / "link"
+    link.symlink_to(data)
+    assert main([*args, "--out", str(link), "--seed", "3"]) == 0
+    assert link.is_symlink() and (data / "manifest.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "link", "mine"]
+
+
+def test_complete_refuses_names_that_differ_only_in_case(
+    tmp_path: Path, checkpoint: Path, capsys
+) -> None:
+    points = np.random.default_rng(0).normal(size=(300, 3)).astype(np.float32)
+    (tmp_path / "a").mkdir()
+    write_ply(tmp_path / "scan.ply", points)
+    write_ply(tmp_path / "a" / "Scan.ply", points)
+    args = ["complete", str(tmp_path / "scan.ply"), str(tmp_path / "a" / "Scan.ply")]
+    assert main([*args, "--checkpoint", str(checkpoint), "--out", str(tmp_path / "o")]) == 1
+    assert "would both write" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_text_clouds_with_a_byte_order_mark_or_trailing_comments_keep_every_point(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "scan.xyz"
+    path.write_bytes("\ufeff1 2 3 # first\n4 5 6\n".encode())
+    assert read_point_cloud(path).tolist() == [[1, 2, 3], [4, 5, 6]]
+    path.write_text("x_m y_m z_m\n1 2 3\n")  # a header may hold underscores
+    assert read_point_cloud(path).tolist() == [[1, 2, 3]]
+    path.write_text("1_0 2 3\n4 5 6\n")  # a value may not
+    with pytest.raises(Exception, match="line 1 is not numeric"):
+        read_point_cloud(path)
