@@ -14,6 +14,7 @@ torch = pytest.importorskip("torch")
 
 from pfnet.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
+from pfnet.data import prepare_dataset  # noqa: E402
 from pfnet.errors import ConfigError, DataError  # noqa: E402
 from pfnet.models import MODELS  # noqa: E402
 from pfnet.training import preset_config, train  # noqa: E402
@@ -352,3 +353,22 @@ def test_augmented_training_runs_and_needs_a_known_up_axis(
         train(config, data, tmp_path / "other", device="cpu")
     with pytest.raises(ConfigError, match=r"augment_scale must be a number in \[0, 1\)"):
         config.replace(augment_scale=1.0)
+
+
+def test_val_data_validates_on_another_data_sets_split(tiny_dataset: Path, tmp_path: Path) -> None:
+    other = tmp_path / "other"
+    prepare_dataset(
+        None, other, format="procedural", points=512, seed=5, count=6, categories=["chair"],
+        test_fraction=0.25, val_fraction=0.5, workers=1, progress=False,
+    )  # fmt: skip
+    config = FAST.replace(model="mlp", epochs=1, width=0.125)
+    runs = {}
+    for name, val_data in (("own", None), ("other", other)):
+        run = tmp_path / f"run-{name}"
+        train(config, tiny_dataset, run, device="cpu", progress=False, val_data=val_data)
+        runs[name] = _rows(run)
+    # the same training (same seed, same data), validated on different shapes
+    assert runs["own"][1]["loss_g"] == runs["other"][1]["loss_g"]
+    assert runs["own"][1]["val_cd_l2"] != runs["other"][1]["val_cd_l2"]
+    with pytest.raises(ConfigError, match="is inside the input"):
+        train(config, tiny_dataset, other / "run", device="cpu", progress=False, val_data=other)

@@ -8,9 +8,12 @@ stay two parts of one shape. Every draw comes from a generator seeded by
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError
 
 __all__ = ["AXES", "Augmentation", "up_axis_index"]
@@ -80,3 +83,16 @@ class Augmentation:
             noise = rng.normal(0.0, self.jitter, size=out.shape)
             out = out + np.clip(noise, -3 * self.jitter, 3 * self.jitter)
         return out.astype(np.float32)
+
+
+def augmentation_for(config: Any, data_dir: Path) -> Augmentation | None:
+    """The training augmentation a ``TrainConfig`` asks for (``None`` when it asks for none)."""
+    if not (config.augment_rotate or config.augment_scale or config.augment_jitter):
+        return None
+    up_axis = None
+    if config.augment_rotate:
+        try:
+            up_axis = up_axis_index(read_manifest(data_dir))
+        except ConfigError as err:
+            raise ConfigError(f"augment_rotate: {err} ({data_dir})") from None
+    return Augmentation(up_axis, config.augment_scale, config.augment_jitter)

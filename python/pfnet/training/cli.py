@@ -51,6 +51,12 @@ OVERRIDES: dict[str, tuple[type, str]] = {
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``pfnet train``."""
     parser.add_argument("--data", required=True, type=Path, help="dataset folder (pfnet prepare)")
+    parser.add_argument(
+        "--val-data",
+        type=Path,
+        default=None,
+        help="validate on this data set's val split instead (default: --data's)",
+    )
     parser.add_argument("--out", required=True, type=Path, help="run folder to write")
     parser.add_argument("--model", choices=MODEL_NAMES, help="generator (default: pfnet)")
     parser.add_argument("--preset", choices=tuple(PRESETS), help="base configuration (paper)")
@@ -122,7 +128,14 @@ def run(args: argparse.Namespace) -> int:
     config = build_config(args)
     from pfnet.training.loop import train
 
-    summary = train(config, args.data, args.out, device=args.device, resume=args.resume)
+    summary = train(
+        config,
+        args.data,
+        args.out,
+        device=args.device,
+        resume=args.resume,
+        val_data=args.val_data,
+    )
     if summary["world_size"] > 1:
         import os
 

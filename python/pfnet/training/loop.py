@@ -29,8 +29,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Subset
 from tqdm import tqdm
 
 from pfnet.checkpoint import read_checkpoint
-from pfnet.data.augment import Augmentation, up_axis_index
-from pfnet.data.format import read_manifest
+from pfnet.data.augment import augmentation_for
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import atomic_path, refuse_overlap
 from pfnet.training import distributed
@@ -60,6 +59,7 @@ def train(
     device: str | torch.device = "auto",
     resume: bool = False,
     progress: bool | None = None,
+    val_data: str | Path | None = None,
 ) -> dict[str, Any]:
     """Train ``config.model`` on the dataset in ``data_dir``, writing the run to ``out_dir``.
 
@@ -76,6 +76,9 @@ def train(
             :data:`~pfnet.training.config.RESUMABLE_FIELDS` may differ from the stored
             configuration.
         progress: Show a tqdm bar (default: when stderr is a terminal).
+        val_data: Take the ``val`` split from this data set instead (e.g. train on every
+            catalogue model, validate on the 8 categories' split, which the wider set's
+            train split leaves out).
 
     Returns:
         A summary: ``epochs`` completed, ``interrupted``, ``best_epoch``, ``best_val_cd_l2``,
@@ -86,10 +89,13 @@ def train(
         ConfigError: Bad configuration, or a resume that changes the configuration.
         DataError: Missing or unusable dataset or checkpoint.
     """
-    refuse_overlap(out_dir, [data_dir])
+    refuse_overlap(out_dir, [data_dir] if val_data is None else [data_dir, val_data])
     context = distributed.setup(device)
     try:
-        trainer = Trainer(config, Path(data_dir), Path(out_dir), context, resume=resume)
+        val_dir = None if val_data is None else Path(val_data)
+        trainer = Trainer(
+            config, Path(data_dir), Path(out_dir), context, resume=resume, val_dir=val_dir
+        )
         show = sys.stderr.isatty() if progress is None else progress
         return trainer.run(progress=show and context.is_main)
     finally:
@@ -107,6 +113,7 @@ class Trainer:
         context: DistContext,
         *,
         resume: bool = False,
+        val_dir: Path | None = None,
     ) -> None:
         from pfnet.data.dataset import CompletionDataset
 
@@ -145,10 +152,14 @@ class Trainer:
             crop=config.crop,
             seed=config.seed,
             fresh_points=config.fresh_points,
-            augment=_augmentation(config, data_dir),
+            augment=augmentation_for(config, data_dir),
         )
         self.val_set = CompletionDataset(
-            data_dir, "val", missing_ratio=config.missing_ratio, crop="test", seed=config.seed
+            val_dir or data_dir,
+            "val",
+            missing_ratio=config.missing_ratio,
+            crop="test",
+            seed=config.seed,
         )
         if len(self.train_set) == 0:
             raise DataError(f"{data_dir}: the train split is empty")
@@ -482,16 +493,3 @@ class Trainer:
             values = values.cpu()
         count = float(values[-1]) or 1.0
         return {k: float(v) / count for k, v in zip(keys, values[:-1].tolist(), strict=True)}
-
-
-def _augmentation(config: TrainConfig, data_dir: Path) -> Augmentation | None:
-    """The training augmentation the config asks for (``None`` when it asks for none)."""
-    if not (config.augment_rotate or config.augment_scale or config.augment_jitter):
-        return None
-    up_axis = None
-    if config.augment_rotate:
-        try:
-            up_axis = up_axis_index(read_manifest(data_dir))
-        except ConfigError as err:
-            raise ConfigError(f"augment_rotate: {err} ({data_dir})") from None
-    return Augmentation(up_axis, config.augment_scale, config.augment_jitter)
