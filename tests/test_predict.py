@@ -12,9 +12,10 @@ torch = pytest.importorskip("torch")
 from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.data import load_split, test_protocol_crop  # noqa: E402
+from pfnet.devices import inference_device  # noqa: E402
 from pfnet.errors import ConfigError  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
-from pfnet.predict import predict_split, resolve_device  # noqa: E402
+from pfnet.predict import predict_split  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 
 
@@ -102,8 +103,11 @@ def test_predict_errors(tmp_path, tiny_dataset, checkpoint, capsys, monkeypatch)
     assert main([*base, "--checkpoint", str(path), "--split", "nope"]) == 1
     assert "nope" in capsys.readouterr().err
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(ConfigError, match="no CUDA device"):
-        resolve_device("cuda")
-    assert resolve_device("auto") == "cpu"
-    with pytest.raises(ConfigError, match="--device must be one of"):
-        resolve_device("tpu")
+    for name in ("cuda", "cuda:1"):
+        with pytest.raises(ConfigError, match=f"device {name}: this machine has 0 CUDA device"):
+            inference_device(name)
+    assert inference_device("auto") == "cpu" and inference_device("cpu") == "cpu"
+    with pytest.raises(ConfigError, match="device must be auto, cpu, cuda or cuda:N, got 'tpu'"):
+        inference_device("tpu")
+    assert main([*base, "--checkpoint", str(path), "--device", "cuda:0"]) == 1
+    assert "this machine has 0 CUDA device(s)" in capsys.readouterr().err

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError, DataError
 
 HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
@@ -145,16 +146,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
-    parser.add_argument(
-        "--device", choices=("auto", "cpu", "cuda"), default="auto", help="(default: auto)"
-    )
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
     from pfnet.checkpoint import load_checkpoint
+    from pfnet.devices import inference_device
     from pfnet.io import refuse_input_overwrite
-    from pfnet.predict import resolve_device
 
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
@@ -175,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     refuse_input_overwrite(
         [output for path in inputs for output in output_paths(args.out, path)], inputs
     )
-    device = resolve_device(args.device)
+    device = inference_device(args.device)
     model, _ = load_checkpoint(args.checkpoint, device=device)
     created = not args.out.exists()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from pfnet.data import SWEETHOME3D_PATH
+from pfnet.data.sources import pick_source
 from pfnet.errors import ConfigError
 
 HELP = "Run the whole pipeline on real furniture models: prepare, train, predict, evaluate."
@@ -66,9 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="shapes per category of procedural data (default: 100)",
     )
-    parser.add_argument(
-        "--device", choices=("auto", "cpu", "cuda"), default="cpu", help="(default: cpu)"
-    )
+    parser.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (default: cpu)")
     parser.add_argument("--seed", type=int, default=0, help="seed of data and training")
     parser.add_argument(
         "--gallery-count", type=int, default=6, help="samples in the gallery (default: 6)"
@@ -77,19 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def choose_source(args: argparse.Namespace) -> Path | None:
     """The model folder to use, or None for procedural shapes (with a hint printed)."""
-    if args.procedural:
-        return None
-    if args.source is not None:
-        if not args.source.exists():
-            raise ConfigError(f"--source {args.source} does not exist")
-        return args.source
-    if SWEETHOME3D_FURNITURE.is_dir() and any(SWEETHOME3D_FURNITURE.glob("*.sh3f")):
-        return SWEETHOME3D_FURNITURE
-    print(
-        f"SweetHome3D furniture not found in {SWEETHOME3D_FURNITURE}; for real data run\n"
-        f"    {INSTALL_HINT}\nand start the demo again. Using procedural shapes now."
+    return pick_source(
+        args.source, procedural=args.procedural, default=SWEETHOME3D_FURNITURE, hint=INSTALL_HINT
     )
-    return None
 
 
 def fresh_folder(path: Path) -> Path:
@@ -155,8 +144,9 @@ def shipped_comparison(data_dir: Path, points: int) -> Path | None:
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet demo``."""
     from pfnet.data import prepare_dataset, read_manifest
+    from pfnet.devices import inference_device
     from pfnet.evaluate import SCALE, evaluate_predictions, render_evaluation_gallery
-    from pfnet.predict import predict_split, resolve_device
+    from pfnet.predict import predict_split
     from pfnet.reports import format_table, write_json
     from pfnet.shipped import describe
     from pfnet.training import train
@@ -166,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--minutes must be positive and at most a week, got {args.minutes}")
     if args.epochs is not None and args.epochs < 1:
         raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
-    device = resolve_device(args.device)
+    device = inference_device(args.device)
     out: Path = args.out
     data_dir, pred_dir = out / "data", out / "predictions"
     out.mkdir(parents=True, exist_ok=True)

@@ -20,11 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from pfnet.devices import DEVICE_HELP, inference_device
 from pfnet.errors import ConfigError, DataError
 
 HELP = "Predict the missing region of every sample of a data set split (test protocol)."
-
-DEVICES = ("auto", "cpu", "cuda")
 
 
 def config_value(config: Any, key: str) -> Any:
@@ -32,19 +31,6 @@ def config_value(config: Any, key: str) -> Any:
     if isinstance(config, dict):
         return config.get(key)
     return getattr(config, key, None)
-
-
-def resolve_device(name: str) -> str:
-    """``auto`` → ``cuda`` if available else ``cpu``; ``cuda`` without a GPU is an error."""
-    import torch
-
-    if name not in DEVICES:
-        raise ConfigError(f"--device must be one of {', '.join(DEVICES)}, got {name!r}")
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda: no CUDA device is available (use --device cpu)")
-    return name
 
 
 def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: str) -> np.ndarray:
@@ -94,7 +80,7 @@ def predict_split(
         split: ``train``, ``val`` or ``test``.
         missing_ratio: Ratio of the test crop; default: the checkpoint's training ratio.
         batch_size: Clouds per forward pass.
-        device: ``auto``, ``cpu`` or ``cuda``.
+        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
 
     Returns:
         The ``predictions.json`` document.
@@ -108,7 +94,7 @@ def predict_split(
     from pfnet.io import atomic_path, refuse_overlap, save_npy
     from pfnet.shipped import describe, resolve_checkpoint
 
-    device = resolve_device(device)
+    device = inference_device(device)
     checkpoint = resolve_checkpoint(checkpoint)
     refuse_overlap(out_dir, [data_dir, checkpoint])
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
@@ -174,7 +160,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="prediction folder to write")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
-    parser.add_argument("--device", choices=DEVICES, default="auto", help="(default: auto)")
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP)
     parser.add_argument(
         "--gallery", type=Path, default=None, help="also render some predictions into a PNG"
     )

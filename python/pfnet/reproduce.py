@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="paper on a GPU, small on a CPU (default: auto)",
     )
     parser.add_argument(
-        "--device", choices=("auto", "cpu", "cuda"), default="auto", help="(default: auto)"
+        "--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N"
     )
     parser.add_argument("--models", nargs="+", default=list(STUDY_MODELS), metavar="MODEL")
     parser.add_argument(
@@ -120,14 +120,20 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, json.JSONDecodeError) as err:
             raise DataError(f"--report-only: cannot read {path}: {err}") from None
     else:
-        from pfnet.demo import choose_source
-        from pfnet.predict import resolve_device
+        from pfnet.data import SWEETHOME3D_PATH
+        from pfnet.data.sources import pick_source
+        from pfnet.devices import inference_device
 
-        device = resolve_device(args.device)
+        device = inference_device(args.device)
         preset = args.preset if args.preset != "auto" else ("small" if device == "cpu" else "paper")
         source = None
         if args.data is None:
-            source = choose_source(argparse.Namespace(procedural=False, source=args.source))
+            source = pick_source(
+                args.source,
+                procedural=False,
+                default=SWEETHOME3D_PATH,
+                hint="sudo apt-get install sweethome3d-furniture",
+            )
         results = reproduce(
             out,
             source=source,

@@ -9,8 +9,11 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+from pfnet.errors import ConfigError
 
 __all__ = [
     "FORMATS",
@@ -18,6 +21,7 @@ __all__ = [
     "Scan",
     "ShapeItem",
     "load_item",
+    "pick_source",
     "safe_name",
     "unique_names",
 ]
@@ -81,6 +85,28 @@ class Geometry:
 
     vertices: np.ndarray
     faces: np.ndarray | None = None
+
+
+def pick_source(source: Path | None, *, procedural: bool, default: Path, hint: str) -> Path | None:
+    """The model source a command uses: ``source`` if given, else ``default`` when it holds
+    catalogues, else ``None`` for procedural shapes (saying so, and how to get real data).
+
+    Raises:
+        ConfigError: ``source`` does not exist.
+    """
+    if procedural:
+        return None
+    if source is not None:
+        if not Path(source).exists():
+            raise ConfigError(f"--source {source} does not exist")
+        return Path(source)
+    if default.is_dir() and any(default.glob("*.sh3f")):
+        return default
+    print(
+        f"SweetHome3D furniture not found in {default}; for real data run\n"
+        f"    {hint}\nand start again. Using procedural shapes now."
+    )
+    return None
 
 
 def safe_name(text: str) -> str:
