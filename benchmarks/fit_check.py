@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pfnet.data.format import CloudSet, load_split, read_manifest, write_dataset
+from pfnet.data.format import CloudSet, load_split, read_manifest, split_record, write_dataset
 from pfnet.training import preset_config, train
 
 
@@ -48,11 +48,11 @@ def fit_subset(data: Path, out: Path, shapes: int) -> Path:
         np.zeros(0, source.category.dtype),
         np.zeros(0, source.name.dtype),
     )
+    splits = {"train": subset, "val": subset, "test": empty}
     manifest = dict(read_manifest(data))
     manifest["note"] = f"fit check: {len(chosen)} training shapes of {data} as train and val"
-    return write_dataset(
-        out, {"train": subset, "val": subset, "test": empty}, manifest, overwrite=True
-    )
+    manifest["splits"] = {name: split_record(clouds) for name, clouds in splits.items()}
+    return write_dataset(out, splits, manifest, overwrite=True)
 
 
 def main(argv: list[str] | None = None) -> int:

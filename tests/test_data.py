@@ -146,7 +146,17 @@ def test_load_split_errors(tmp_path: Path, tiny_dataset: Path) -> None:
     (out / "test.npz").write_bytes(b"not a zip")
     with pytest.raises(DataError, match="test.npz: cannot read the split"):
         load_split(out, "test")
-    np.savez(out / "train.npz", points=np.zeros((2, 4, 3)), category=["a", "b"], name=["x", "y"])
+    # The manifest records each split's size and the point count, and load_split compares the
+    # arrays with it before loading; without those records (as an older pfnet wrote them),
+    # CloudSet's own checks are what remains.
+    with pytest.raises(DataError, match=r"train.npz: member points.npy holds \(2,\) shapes"):
+        np.savez(
+            out / "train.npz", points=np.zeros((2, 4, 3)), category=["a", "b"], name=["x", "y"]
+        )
+        load_split(out, "train")
+    manifest = json.loads((out / "manifest.json").read_text())
+    del manifest["splits"], manifest["points"]
+    (out / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(DataError, match=r"train.npz: points must be a float32 \(S, N, 3\) array"):
         load_split(out, "train")
     np.savez(out / "train.npz", points=np.zeros((2, 4, 3), np.float32), name=["x", "y"])

@@ -375,12 +375,18 @@ def recorded_protocol(args: argparse.Namespace) -> float:
         info = json.loads(record.read_text(encoding="utf-8"))
         made_ratio = float(info["protocol"]["missing_ratio"])
         made_split = str(info["split"])
-    except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        TypeError,
+        RecursionError,
+    ) as err:  # ValueError: bad UTF-8 or JSON
         if args.ignore_recorded_protocol:
             return 0.25 if asked is None else asked
         raise ConfigError(
-            f"evaluate: cannot read {record} ({err!r}); fix or remove it, or pass "
-            "--ignore-recorded-protocol"
+            f"evaluate: cannot read {record} ({type(err).__name__}: {str(err)[:120]}); "
+            "fix or remove it, or pass --ignore-recorded-protocol"
         ) from None
     ratio = made_ratio if asked is None else asked
     if args.ignore_recorded_protocol:

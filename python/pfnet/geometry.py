@@ -12,6 +12,7 @@ float64 and return the input's own points in the input's dtype.
 
 from __future__ import annotations
 
+import numbers
 from typing import Literal
 
 import numpy as np
@@ -222,6 +223,8 @@ def crop_by_viewpoint(
     cloud, batched = _as_cloud("points", points, _CROP_DTYPES)
     views = _viewpoints("viewpoint", viewpoint, cloud.shape[0], batched, 2)
     if radius is not None:
+        if isinstance(radius, (str, bytes, bool)) or not isinstance(radius, numbers.Real):
+            raise TypeError(f"radius must be a real number, got {type(radius).__name__}")
         radius = float(radius)
         if not (np.isfinite(radius) and radius >= 0):
             raise ValueError(f"radius must be a finite number >= 0, got {radius}")

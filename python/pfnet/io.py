@@ -114,8 +114,9 @@ def check_report_path(
     """Refuse a report or picture path that would replace part of a command's inputs.
 
     Nothing may be written inside or over ``inputs`` (data sets, checkpoints); inside the
-    prediction folder ``pred_dir`` a report may replace an earlier report, never a point
-    cloud file (matched or not), the ``predictions.json`` record or a hidden file.
+    prediction folder ``pred_dir`` a report may replace an earlier report, never be named
+    as a point cloud file (existing or to come), the ``predictions.json`` record or a
+    hidden file.
 
     Raises:
         ConfigError: Naming the flag and the file.
@@ -127,7 +128,8 @@ def check_report_path(
         else:
             refuse_overlap(output, [item], flag=flag)
     target = Path(output).resolve()
-    if target.is_relative_to(Path(pred_dir).resolve()) and target.exists():
+    if target.is_relative_to(Path(pred_dir).resolve()):
+        # whether or not it exists yet: predict writes its predictions after this check
         if (
             target.suffix.lower() in POINT_CLOUD_SUFFIXES
             or target.name == "predictions.json"

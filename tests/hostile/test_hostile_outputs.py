@@ -109,14 +109,24 @@ def test_a_data_set_with_hostile_or_duplicate_names_cannot_be_loaded(
     data = tmp_path / "data"
     shutil.copytree(tiny_dataset, data)
     # forge the test split as an attacker would: names written straight into the npz
+    n = len(load_split(data, "test"))  # as many rows as the manifest records
+    others = [f"shape_{i}" for i in range(n - 2)]
     for names, message in (
-        (["../../../outside", "b"], "not allowed in a file name"),
-        (["b", "b"], "chair/b appears twice"),
+        (["../../../outside", "b", *others], "not allowed in a file name"),
+        (["b", "b", *others], "chair/b appears twice"),
     ):
-        points = np.zeros((2, 8, 3), np.float32)
-        np.savez(data / "test.npz", points=points, category=np.array(["chair"] * 2), name=names)
+        points = np.zeros((n, 512, 3), np.float32)
+        np.savez(data / "test.npz", points=points, category=np.array(["chair"] * n), name=names)
         with pytest.raises(DataError, match=message):
             load_split(data, "test")
+    # a category the manifest does not list (e.g. one named like predict's record file)
+    names = ["a", *others, "b"]
+    category = np.array(["chair"] * (n - 1) + ["predictions.json"])
+    np.savez(data / "test.npz", points=points, category=category, name=names)
+    with pytest.raises(
+        DataError, match=r"categories \['predictions.json'\] are not in the manifest"
+    ):
+        load_split(data, "test")
 
 
 def test_predict_and_train_refuse_an_output_over_their_data(

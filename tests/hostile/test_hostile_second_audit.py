@@ -148,3 +148,72 @@ def test_text_clouds_with_a_byte_order_mark_or_trailing_comments_keep_every_poin
     path.write_text("1_0 2 3\n4 5 6\n")  # a value may not
     with pytest.raises(Exception, match="line 1 is not numeric"):
         read_point_cloud(path)
+
+
+# ----------------------------------------------------------------------------------------
+# The third audit's variants.
+
+
+def test_predict_gallery_may_not_be_named_as_a_prediction_still_to_come(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
+) -> None:
+    out = tmp_path / "pred"
+    base = ["predict", "--checkpoint", str(checkpoint), "--data", str(tiny_dataset)]
+    name = load_name(tiny_dataset)
+    for gallery in (out / name, out / "predictions.json"):
+        assert main([*base, "--out", str(out), "--device", "cpu", "--gallery", str(gallery)]) == 1
+        assert "would overwrite a file of the prediction folder" in capsys.readouterr().err
+    assert not out.exists()
+    assert main([*base, "--out", str(out), "--gallery", str(tmp_path / "g.jpg")]) == 1
+    assert "must be a .png file" in capsys.readouterr().err
+
+
+def load_name(data: Path) -> str:
+    from pfnet.data import load_split
+
+    test = load_split(data, "test")
+    return f"{test.category[0]}/{test.name[0]}.npy"
+
+
+def test_walked_ply_rows_are_bounded_over_all_elements(tmp_path: Path) -> None:
+    from pfnet.errors import DataError
+
+    elements = "".join(
+        f"element e{k} 1500000\nproperty list uchar int ids\n" for k in range(3)
+    )  # each under the bound, together over it
+    header = "ply\nformat binary_little_endian 1.0\n" + elements
+    header += "element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    path = tmp_path / "many.ply"
+    path.write_bytes(header.encode() + bytes(4_500_000) + np.zeros(3, "<f4").tobytes())
+    with pytest.raises(
+        DataError, match="brings the rows with list properties before the vertices to 3000000"
+    ):
+        read_point_cloud(path)
+
+
+def test_a_transposed_npy_cloud_is_refused(tmp_path: Path) -> None:
+    from pfnet.errors import DataError
+
+    path = tmp_path / "t.npy"
+    np.save(path, np.random.default_rng(0).normal(size=(3, 300)).astype(np.float32))
+    with pytest.raises(DataError, match=r"is the array transposed"):
+        read_point_cloud(path)
+    np.save(path, np.random.default_rng(0).normal(size=(300, 7)).astype(np.float32))  # + normals
+    assert read_point_cloud(path).shape == (300, 3)
+
+
+def test_an_unreadable_record_gives_a_short_line(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    (pred / "predictions.json").write_bytes(bytes(range(256)) * 4000)  # 1 MB, not UTF-8
+    assert main(["evaluate", str(pred), "--data", str(tiny_dataset)]) == 1
+    err = capsys.readouterr().err
+    assert "cannot read" in err and len(err) < 600
+
+
+def test_render_refuses_more_rows_than_a_picture_can_show(tmp_path: Path, capsys) -> None:
+    cloud = tmp_path / "c.ply"
+    write_ply(cloud, np.random.default_rng(0).normal(size=(20, 3)).astype(np.float32))
+    assert main(["render", *[str(cloud)] * 201, "--out", str(tmp_path / "x.png")]) == 1
+    assert "201 rows is more than the 200" in capsys.readouterr().err

@@ -188,6 +188,18 @@ def read_manifest(root: str | os.PathLike[str]) -> dict:
     return manifest
 
 
+def split_record(clouds: CloudSet) -> dict[str, object]:
+    """The manifest's record of a split: its total and its shapes per category.
+
+    :func:`load_split` checks each split file against this record, so any tool that writes
+    a data set with :func:`write_dataset` must record its splits this way.
+    """
+    counts: dict[str, int] = {}
+    for category in clouds.category.tolist():
+        counts[str(category)] = counts.get(str(category), 0) + 1
+    return {"total": len(clouds), "categories": dict(sorted(counts.items()))}
+
+
 def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     """Load one split of a dataset into memory.
 
@@ -208,7 +220,14 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     if not path.is_file():
         raise DataError(f"{path}: missing split file")
     try:
-        _check_members(path)
+        totals = manifest.get("splits", {}).get(split, {})
+        rows = totals.get("total") if isinstance(totals, dict) else None
+        declared = manifest.get("points")
+        _check_members(
+            path,
+            rows if isinstance(rows, int) else None,
+            declared if isinstance(declared, int) else None,
+        )
         with np.load(path, allow_pickle=False) as data:
             missing = {"points", "category", "name"} - set(data.files)
             if missing:
@@ -224,6 +243,11 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
         clouds = CloudSet(**arrays)
     except DataError as err:
         raise DataError(f"{path}: {err}") from err
+    listed = manifest.get("categories")
+    if isinstance(listed, list):
+        strays = sorted(set(clouds.categories) - {str(c) for c in listed})
+        if strays:
+            raise DataError(f"{path}: categories {strays[:3]} are not in the manifest's list")
     declared = manifest.get("points")
     if isinstance(declared, int) and len(clouds) and clouds.n_points != declared:
         raise DataError(
@@ -232,7 +256,7 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     return clouds
 
 
-def _check_members(path: Path) -> None:
+def _check_members(path: Path, rows: int | None, points: int | None) -> None:
     """Check every ``.npy`` member's declared size against its stored size before loading.
 
     A member whose header claims 10^12 points would make numpy try to allocate terabytes.
@@ -253,7 +277,14 @@ def _check_members(path: Path) -> None:
             ratio = 1 if info.compress_type == zipfile.ZIP_STORED else 1032
             available = min(info.file_size, info.compress_size * ratio)
             with archive.open(info) as member:
-                check_npy_header(f"{path}: member {info.filename}", member, available)
+                name = f"{path}: member {info.filename}"
+                shape = check_npy_header(name, member, available)
+            # ... and against the manifest, before anything is unpacked (a deflated 8 MB
+            # member of 300,000 zero clouds took 2.4 GB before the count was compared)
+            if rows is not None and shape[:1] != (rows,):
+                raise DataError(f"{name} holds {shape[:1]} shapes, the manifest says {rows}")
+            if info.filename == "points.npy" and points is not None and shape[1:2] != (points,):
+                raise DataError(f"{name} has clouds of shape {shape[1:]}, not {points} points")
 
 
 def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:

@@ -34,10 +34,21 @@ def read_header(fh, file: Path, end: bytes, max_lines: int = 10_000) -> list[str
     raise DataError(f"{file}: header longer than {max_lines} lines")
 
 
+# Columns a point table may have (x y z, normals, colours, intensity, labels, ...).
+MAX_COLUMNS = 16
+
+
 def first_three_columns(file: Path, array: np.ndarray) -> np.ndarray:
     """Check a 2-D numeric array with at least three columns and return its first three."""
     if array.ndim != 2 or array.shape[1] < 3:
         raise DataError(f"{file}: expected an (N, 3) array of points, got shape {array.shape}")
+    if array.shape[1] > MAX_COLUMNS and array.shape[0] <= MAX_COLUMNS:
+        # x, y, z plus a few attributes (normals, colours, intensity) is a point cloud;
+        # a (3, 300) array is one stored transposed, not three points
+        raise DataError(
+            f"{file}: shape {array.shape} is {array.shape[1]} columns of {array.shape[0]} rows; "
+            "points are rows (N, 3): is the array transposed?"
+        )
     if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.number):
         raise DataError(f"{file}: expected numeric coordinates, got dtype {array.dtype}")
     if np.issubdtype(array.dtype, np.complexfloating):

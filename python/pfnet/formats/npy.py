@@ -10,11 +10,12 @@ from pfnet.errors import DataError
 from pfnet.formats import first_three_columns
 
 
-def check_npy_header(name: str, fh, available: int) -> None:
+def check_npy_header(name: str, fh, available: int) -> tuple[int, ...]:
     """Refuse a ``.npy`` stream whose header claims more data than ``available`` bytes.
 
     Reads the header from ``fh`` (positioned at the start) before numpy allocates anything:
     a forged header claiming 10^12 points made ``np.load`` fail with ``MemoryError``.
+    Returns the declared shape.
 
     Raises:
         DataError: Naming ``name``, the declared shape and the bytes there are.
@@ -35,6 +36,7 @@ def check_npy_header(name: str, fh, available: int) -> None:
             f"{name}: the .npy header declares shape {shape} ({needed} bytes) but the file "
             f"holds {max(available - fh.tell(), 0)} bytes of data"
         )
+    return tuple(shape)
 
 
 def read_npy(file: Path) -> np.ndarray:

@@ -148,6 +148,7 @@ def _read_ply_ascii(file, body: bytes, elements, vertex_index: int) -> np.ndarra
 
 def _read_ply_binary(file, body: bytes, elements, vertex_index: int, endian: str) -> np.ndarray:
     offset = 0
+    walked = 0
     for name, count, props in elements[: vertex_index + 1]:
         is_vertex = name == "vertex"
         if all(p[2] is None for p in props):
@@ -166,10 +167,11 @@ def _read_ply_binary(file, body: bytes, elements, vertex_index: int, endian: str
         # Elements with list properties have variable-size rows: walk them one by one. Every
         # row takes at least its scalars and list lengths, so a count the bytes left cannot
         # hold is refused before the walk (a forged count would otherwise loop for hours).
-        if count > MAX_WALKED_ROWS:
+        walked += count  # the bound holds for all elements together, not each
+        if walked > MAX_WALKED_ROWS:
             raise DataError(
-                f"{file}: PLY element {name!r} has {count} rows with list properties before "
-                f"the vertices are read; pfnet walks at most {MAX_WALKED_ROWS} (write the "
+                f"{file}: PLY element {name!r} brings the rows with list properties before "
+                f"the vertices to {walked}; pfnet walks at most {MAX_WALKED_ROWS} (write the "
                 "vertex element first)"
             )
         least = sum(np.dtype(p[2] if p[2] is not None else p[1]).itemsize for p in props)

@@ -129,7 +129,8 @@ class Trainer:
             check_resumable(state, out_dir / LAST)
             config = resumed_config(config, state, out_dir / LAST)
             stored = state.get("data")  # absent in checkpoints of older pfnet versions
-            if stored and stored.get("fingerprint") != self.data_identity["fingerprint"]:
+            comparable = stored and stored.get("kind") == self.data_identity["kind"]
+            if comparable and stored.get("fingerprint") != self.data_identity["fingerprint"]:
                 raise ConfigError(
                     f"{out_dir / LAST} trained on another data set ({stored.get('path')}); "
                     f"--data {data_dir} differs from it: resume with the same data"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 from typing import Any
 
@@ -11,21 +12,35 @@ import torch
 from pfnet.errors import ConfigError, DataError
 from pfnet.training.config import RESUMABLE_FIELDS, TrainConfig
 
+# Fingerprints of another kind (the first one hashed the whole manifest) are not compared.
+IDENTITY_KIND = "train-split-2"
+
 
 def data_identity(data_dir: Path) -> dict[str, str]:
-    """What a run records of its data set, so that ``--resume`` can refuse another one.
+    """What a run records of its training data, so that ``--resume`` can refuse other data.
 
-    The fingerprint covers the manifest (source, options, seed, every shape's name and split)
-    and the split files' sizes; a data set moved or copied elsewhere keeps it.
+    The fingerprint covers what decides the training split — the manifest's source, options,
+    seed, categories, pool and train-split record, and the train file's size — so a data set
+    moved or copied elsewhere keeps it, and the validation data may change (``--val-data``).
     """
-    digest = hashlib.sha256()
-    manifest = Path(data_dir) / "manifest.json"
-    if manifest.is_file():
-        digest.update(manifest.read_bytes())
-    for split in ("train", "val"):
-        path = Path(data_dir) / f"{split}.npz"
-        digest.update(f"{split}:{path.stat().st_size if path.is_file() else -1};".encode())
-    return {"path": str(Path(data_dir).resolve()), "fingerprint": digest.hexdigest()}
+    manifest_path = Path(data_dir) / "manifest.json"
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        manifest = {}
+    keys = ("source", "points", "seed", "split", "categories", "pool", "normalization")
+    decisive = {key: manifest.get(key) for key in keys if isinstance(manifest, dict)}
+    decisive["train"] = (
+        manifest.get("splits", {}).get("train") if isinstance(manifest, dict) else None
+    )
+    train = Path(data_dir) / "train.npz"
+    decisive["train_bytes"] = train.stat().st_size if train.is_file() else -1
+    digest = hashlib.sha256(json.dumps(decisive, sort_keys=True, default=str).encode())
+    return {
+        "path": str(Path(data_dir).resolve()),
+        "fingerprint": digest.hexdigest(),
+        "kind": IDENTITY_KIND,
+    }
 
 
 def resumed_config(config: TrainConfig, state: dict[str, Any], path: Path) -> TrainConfig:
