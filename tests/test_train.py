@@ -191,6 +191,9 @@ def test_an_empty_val_split_trains_without_validation(tiny_dataset: Path, tmp_pa
     shutil.copytree(tiny_dataset, data)
     empty = np.zeros(0, "<U1")
     np.savez(data / "val.npz", points=np.zeros((0, 512, 3), np.float32), category=empty, name=empty)
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["splits"]["val"] = {"total": 0, "categories": {}}  # a consistent data set
+    (data / "manifest.json").write_text(json.dumps(manifest))
     config = FAST.replace(model="mlp", epochs=1, width=0.125)
     summary = train(config, data, tmp_path / "run", device="cpu", progress=False)
     assert summary["best_val_cd_l2"] is None and summary["best_epoch"] == 1
