@@ -112,8 +112,19 @@ def predict_split(
     detail = predict_missing(model, np.asarray(partial, dtype=np.float32), batch_size, device)
 
     out = Path(out_dir)
+    categories = sorted(set(map(str, clouds.category)))
+    if "predictions.json" in categories:  # its folder would stand where the record goes
+        raise DataError(f"{data_dir}: a category is named predictions.json")
+    for category in categories:
+        folder = out / category
+        # a folder that is a symbolic link (or resolves elsewhere) would take the
+        # predictions outside --out: into the data set, over a checkpoint
+        if folder.is_symlink() or (
+            folder.exists() and not folder.resolve().is_relative_to(out.resolve())
+        ):
+            raise DataError(f"{folder} is a link out of --out {out}; remove it first")
     out.mkdir(parents=True, exist_ok=True)
-    for category in sorted(set(map(str, clouds.category))):
+    for category in categories:
         (out / category).mkdir(exist_ok=True)
     for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
         save_npy(out / str(cat) / f"{name}.npy", cloud)
@@ -177,6 +188,8 @@ def run(args: argparse.Namespace) -> int:
         from pfnet.io import check_report_path
         from pfnet.shipped import resolve_checkpoint
 
+        if args.gallery.suffix.lower() != ".png":
+            raise ConfigError(f"--gallery must be a .png file, got {args.gallery}")
         inputs = [args.data, resolve_checkpoint(args.checkpoint)]
         check_report_path(args.gallery, args.out, inputs, flag="--gallery")
     info = predict_split(

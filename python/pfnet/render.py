@@ -126,6 +126,8 @@ def row_label(label: str, height_inches: float, fontsize: float) -> str:
 # to draw: 1,000 rows took 44 s and 1.3 GB).
 MAX_VIEWS = 12
 MAX_ROWS = 200
+# Points drawn per cloud and panel: more are not visible, only slow (5 M took minutes).
+MAX_DRAWN = 50_000
 
 
 def render_panels(
@@ -200,6 +202,9 @@ def render_panels(
                 col = v * len(panels) + k
                 ax = fig.add_subplot(len(rows), n_cols, r * n_cols + col + 1, projection="3d")
                 for points, color in layers:
+                    points = np.asarray(points)
+                    if len(points) > MAX_DRAWN:  # a picture cannot show more; every k-th
+                        points = points[:: -(-len(points) // MAX_DRAWN)]
                     pts = np.asarray(points, dtype=np.float64) - centre
                     # y-up data: draw (x, z, y) so that y is matplotlib's vertical axis.
                     ax.scatter(

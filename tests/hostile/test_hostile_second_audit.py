@@ -43,10 +43,11 @@ def test_predict_gallery_never_lands_on_its_inputs(
     before = _tree(tmp_path)
     base = ["predict", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(pred)]
     for gallery, message in (
-        (data / "test.npz", "is inside the input"),
+        (data / "test.npz", "must be a .png file"),  # a gallery is a PNG: never a data file,
+        (checkpoint, "must be a .png file"),  # a checkpoint or a prediction
+        (victim, "must be a .png file"),
         (data / "g.png", "is inside the input"),
-        (checkpoint, "would overwrite the input"),
-        (victim, "would overwrite a file of the prediction folder"),
+        (pred / ".hidden.png", "would overwrite a file of the prediction folder"),
     ):
         assert main([*base, "--device", "cpu", "--gallery", str(gallery)]) == 1
         assert message in capsys.readouterr().err
@@ -162,7 +163,7 @@ def test_predict_gallery_may_not_be_named_as_a_prediction_still_to_come(
     name = load_name(tiny_dataset)
     for gallery in (out / name, out / "predictions.json"):
         assert main([*base, "--out", str(out), "--device", "cpu", "--gallery", str(gallery)]) == 1
-        assert "would overwrite a file of the prediction folder" in capsys.readouterr().err
+        assert "must be a .png file" in capsys.readouterr().err
     assert not out.exists()
     assert main([*base, "--out", str(out), "--gallery", str(tmp_path / "g.jpg")]) == 1
     assert "must be a .png file" in capsys.readouterr().err
@@ -217,3 +218,129 @@ def test_render_refuses_more_rows_than_a_picture_can_show(tmp_path: Path, capsys
     write_ply(cloud, np.random.default_rng(0).normal(size=(20, 3)).astype(np.float32))
     assert main(["render", *[str(cloud)] * 201, "--out", str(tmp_path / "x.png")]) == 1
     assert "201 rows is more than the 200" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------
+# The fourth audit's variants.
+
+
+def test_predict_never_follows_a_linked_category_folder_out_of_its_output(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
+) -> None:
+    from pfnet.data import load_split
+
+    category = str(load_split(tiny_dataset, "test").category[0])
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "keep.npy").write_bytes(b"mine")
+    out = tmp_path / "pred"
+    out.mkdir()
+    (out / category).symlink_to(victim)
+    before = _tree(victim)
+    args = ["predict", "--checkpoint", str(checkpoint), "--data", str(tiny_dataset)]
+    assert main([*args, "--out", str(out), "--device", "cpu"]) == 1
+    assert "is a link out of --out" in capsys.readouterr().err
+    assert _tree(victim) == before and sorted(p.name for p in out.iterdir()) == [category]
+
+
+def test_forged_nesting_in_json_toml_and_config_values_is_one_line(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    (data / "manifest.json").write_text("[" * 100000 + "]" * 100000)
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    assert main(["evaluate", str(pred), "--data", str(data)]) == 1
+    err = capsys.readouterr().err
+    assert "cannot read the manifest" in err and len(err) < 600
+    deep = tmp_path / "deep.toml"
+    deep.write_text("lr = " + "[" * 50000 + "]" * 50000 + "\n")
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(tiny_dataset),
+                "--out",
+                str(tmp_path / "r"),
+                "--config",
+                str(deep),
+            ]
+        )
+        == 1
+    )
+    err = capsys.readouterr().err
+    assert "is not valid TOML" in err and "Traceback" not in err and len(err) < 600
+    from pfnet.errors import ConfigError
+    from pfnet.training.config import TrainConfig, preset_config
+
+    value: list = []
+    for _ in range(80):  # shared references: 2^80 elements when printed in full
+        value = [value, value]
+    with pytest.raises(ConfigError, match=r"n_points must be .*; got \[\[\[") as caught:
+        TrainConfig.from_dict({**preset_config("small").to_dict(), "n_points": value})
+    assert len(str(caught.value)) < 400
+
+
+def test_forged_string_widths_and_category_names_in_a_split(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
+) -> None:
+    import json
+
+    from pfnet.data import load_split
+    from pfnet.errors import DataError
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    test = load_split(data, "test")
+    n = len(test)
+    wide = np.array(["x"] * n, dtype="<U100000000")[:0]  # the dtype alone, no memory
+    header_only = tmp_path / "wide.npy"
+    with open(header_only, "wb") as fh:
+        np.lib.format.write_array_header_1_0(
+            fh, {"descr": wide.dtype.str, "fortran_order": False, "shape": (n,)}
+        )
+    import zipfile
+
+    with zipfile.ZipFile(data / "test.npz", "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("points.npy", _npy_bytes(test.points))
+        archive.writestr("category.npy", header_only.read_bytes() + bytes(1000))
+        archive.writestr("name.npy", _npy_bytes(test.name))
+    with pytest.raises(DataError, match="declares strings of 100000000 characters"):
+        load_split(data, "test")
+    # a forged manifest that lists a category named like predict's record file
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["categories"] = [*manifest["categories"], "predictions.json"]
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    category = test.category.copy().astype("<U32")
+    category[0] = "predictions.json"
+    np.savez(data / "test.npz", points=test.points, category=category, name=test.name)
+    out = tmp_path / "pred"
+    args = ["predict", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(out)]
+    assert main([*args, "--device", "cpu"]) == 1
+    assert "a category is named predictions.json" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    import io
+
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+def test_render_draws_huge_clouds_thinned_and_ascii_ply_lines_are_bounded(tmp_path: Path) -> None:
+    from pfnet.errors import DataError
+    from pfnet.render import MAX_DRAWN, RenderSample, render_gallery
+
+    big = np.random.default_rng(0).normal(size=(MAX_DRAWN * 20, 3)).astype(np.float32)
+    path = render_gallery(tmp_path / "big.png", [RenderSample("big", big)], views=1)
+    assert path.stat().st_size > 0
+    header = "ply\nformat ascii 1.0\nelement junk 30000000\nproperty float a\n"
+    header += "element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    ply = tmp_path / "lines.ply"
+    ply.write_text(header + "1\n" * 10)
+    with pytest.raises(DataError, match="ASCII PLY declares 30000001 lines"):
+        read_point_cloud(ply)

@@ -10,12 +10,14 @@ from pfnet.errors import DataError
 from pfnet.formats import first_three_columns
 
 
-def check_npy_header(name: str, fh, available: int) -> tuple[int, ...]:
+def check_npy_header(
+    name: str, fh, available: int, *, max_chars: int | None = None
+) -> tuple[tuple[int, ...], np.dtype]:
     """Refuse a ``.npy`` stream whose header claims more data than ``available`` bytes.
 
     Reads the header from ``fh`` (positioned at the start) before numpy allocates anything:
     a forged header claiming 10^12 points made ``np.load`` fail with ``MemoryError``.
-    Returns the declared shape.
+    Returns the declared shape and dtype. ``max_chars`` bounds the width of string arrays.
 
     Raises:
         DataError: Naming ``name``, the declared shape and the bytes there are.
@@ -30,13 +32,16 @@ def check_npy_header(name: str, fh, available: int) -> tuple[int, ...]:
             shape, _, dtype = npy_format.read_array_header_2_0(fh)
     except (ValueError, EOFError) as err:
         raise DataError(f"{name}: not a valid .npy array file ({err})") from None
+    if max_chars is not None and dtype.kind == "U" and dtype.itemsize > 4 * max_chars:
+        # checked before the size: a forged width of 10^8 deflates to almost nothing
+        raise DataError(f"{name} declares strings of {dtype.itemsize // 4} characters")
     needed = int(np.prod(shape, dtype=object)) * dtype.itemsize
     if needed > available - fh.tell():
         raise DataError(
             f"{name}: the .npy header declares shape {shape} ({needed} bytes) but the file "
             f"holds {max(available - fh.tell(), 0)} bytes of data"
         )
-    return tuple(shape)
+    return tuple(shape), dtype
 
 
 def read_npy(file: Path) -> np.ndarray:

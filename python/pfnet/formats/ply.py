@@ -12,6 +12,8 @@ from pfnet.formats import read_header
 # Rows of PLY elements with list properties are walked one by one in Python (about a second
 # per million): more than this many is refused rather than taking minutes.
 MAX_WALKED_ROWS = 2_000_000
+# ASCII lines are split into Python strings (about 20 bytes of memory per character).
+MAX_ASCII_LINES = 20_000_000
 
 _PLY_TYPES: dict[str, str] = {
     "char": "i1",
@@ -103,6 +105,12 @@ def read_ply(file: Path) -> np.ndarray:
 
 
 def _read_ply_ascii(file, body: bytes, elements, vertex_index: int) -> np.ndarray:
+    needed = sum(count for _, count, _ in elements[: vertex_index + 1])
+    if needed > MAX_ASCII_LINES:
+        raise DataError(
+            f"{file}: ASCII PLY declares {needed} lines up to the vertices; pfnet reads at "
+            f"most {MAX_ASCII_LINES} (save large clouds as binary PLY)"
+        )
     lines = body.decode("ascii", errors="replace").splitlines()
     lines = [ln for ln in lines if ln.strip()]
     start = sum(count for _, count, _ in elements[:vertex_index])

@@ -113,8 +113,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
             raise DataError(f"cannot resume: {stored} does not exist")
         try:
             data = json.loads(stored.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise DataError(f"cannot resume: {stored} is unreadable: {err}") from None
+        except (OSError, ValueError, RecursionError) as err:  # RecursionError: forged nesting
+            raise DataError(f"cannot resume: {stored} is unreadable: {str(err)[:200]}") from None
         base = TrainConfig.from_dict(data, source=str(stored))
     elif args.config is not None:
         base = load_config(args.config, preset=args.preset)

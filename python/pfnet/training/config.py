@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import reprlib
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -237,8 +238,8 @@ def load_config(path: str | Path, *, preset: str | None = None) -> TrainConfig:
         raise ConfigError(f"config file {path} does not exist") from None
     except OSError as err:
         raise ConfigError(f"cannot read config file {path}: {err.strerror}") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"config file {path} is not valid TOML: {err}") from None
+    except (tomllib.TOMLDecodeError, RecursionError) as err:  # RecursionError: forged nesting
+        raise ConfigError(f"config file {path} is not valid TOML: {str(err)[:200]}") from None
     if set(data) == {"train"}:
         data = data["train"]
     base = preset_config(preset or data.get("preset", "paper"))
@@ -263,7 +264,13 @@ def _is_number(value: Any) -> bool:
 
 def _require(ok: bool, key: str, value: Any, what: str) -> None:
     if not ok:
-        raise ConfigError(f"{key} must be {what}; got {value!r}")
+        # reprlib bounds the text (a forged value nested 80 levels deep would be 2^80 long)
+        raise ConfigError(f"{key} must be {what}; got {_REPR.repr(value)}")
+
+
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = 80
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxdict = 3, 4, 4
 
 
 def _is_alpha_schedule(schedule: Any, valid_start: Any) -> bool:
