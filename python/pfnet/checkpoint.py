@@ -45,7 +45,8 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # torch raises many types for corrupt or unsafe files
-        raise DataError(f"checkpoint {path} cannot be read: {err}") from None
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+        raise DataError(f"checkpoint {path} cannot be read: {first}") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise DataError(f"{path} is not a pfnet checkpoint")
     if state.get("version") != VERSION:
@@ -72,8 +73,15 @@ def check_weights(path: Path, config: TrainConfig, weights: dict[str, Any]) -> N
 
     with torch.device("meta"):
         expected = {k: tuple(v.shape) for k, v in build_model(config).state_dict().items()}
-    stored = {k: tuple(v.shape) for k, v in weights.items() if isinstance(v, torch.Tensor)}
-    problems = [f"missing {k}" for k in expected if k not in stored]
+
+    def plain(value: Any) -> bool:
+        return (
+            isinstance(value, torch.Tensor) and value.layout == torch.strided and not value.is_meta
+        )
+
+    problems = [f"{k} is not a plain tensor" for k, v in weights.items() if not plain(v)]
+    stored = {k: tuple(v.shape) for k, v in weights.items() if plain(v)}
+    problems += [f"missing {k}" for k in expected if k not in stored]
     problems += [f"unexpected {k}" for k in stored if k not in expected]
     problems += [
         f"{k} is {stored[k]}, expected {shape}"
@@ -120,7 +128,10 @@ def load_checkpoint(
     config = TrainConfig.from_dict(config_dict, source=f"checkpoint {path}")
     check_weights(path, config, weights)
     model = build_model(config)
-    model.load_state_dict(weights)  # copies float16 model files into float32 parameters
+    try:
+        model.load_state_dict(weights)  # copies float16 model files into float32 parameters
+    except (RuntimeError, TypeError, ValueError) as err:  # what check_weights cannot foresee
+        raise DataError(f"checkpoint {path} cannot be loaded: {str(err)[:200]}") from None
     broken = [name for name, value in model.state_dict().items() if not value.isfinite().all()]
     if broken:  # a diverged run's weights: every completion would be NaN
         raise DataError(

@@ -70,6 +70,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MemoryError:
         print(f"pfnet {args.command}: error: out of memory", file=sys.stderr)
         return 1
+    except ModuleNotFoundError as err:
+        if (err.name or "").split(".")[0] != "torch":
+            raise  # a missing module of our own is a bug: show it
+        print(
+            f"pfnet {args.command}: error: this command needs PyTorch, which is not "
+            "installed: pip install 'pfnet[train]'",
+            file=sys.stderr,
+        )
+        return 1
 
 
 if __name__ == "__main__":

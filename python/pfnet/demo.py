@@ -143,6 +143,10 @@ def shipped_comparison(data_dir: Path, points: int) -> Path | None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet demo``."""
+    if not (math.isfinite(args.minutes) and 0 < args.minutes <= 7 * 24 * 60):
+        raise ConfigError(f"--minutes must be positive and at most a week, got {args.minutes}")
+    if args.epochs is not None and args.epochs < 1:
+        raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
     from pfnet.data import prepare_dataset, read_manifest
     from pfnet.devices import inference_device
     from pfnet.evaluate import SCALE, evaluate_predictions, render_evaluation_gallery
@@ -152,13 +156,12 @@ def run(args: argparse.Namespace) -> int:
     from pfnet.training import train
     from pfnet.training.config import preset_config
 
-    if not (math.isfinite(args.minutes) and 0 < args.minutes <= 7 * 24 * 60):
-        raise ConfigError(f"--minutes must be positive and at most a week, got {args.minutes}")
-    if args.epochs is not None and args.epochs < 1:
-        raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
     device = inference_device(args.device)
     out: Path = args.out
     data_dir, pred_dir = out / "data", out / "predictions"
+    for folder in (data_dir, pred_dir, out / "predictions-shipped", out / "run"):
+        if folder.is_symlink():  # a planted link would take the demo's outputs elsewhere
+            raise ConfigError(f"{folder} is a link; the demo writes only into real folders")
     out.mkdir(parents=True, exist_ok=True)
     run_dir = fresh_folder(out / "run")
     started = time.monotonic()

@@ -117,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
         path = out / "results.json"
         try:
             results = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise DataError(f"--report-only: cannot read {path}: {err}") from None
+            if not isinstance(results, dict) or not isinstance(results.get("runs"), list):
+                raise ValueError("not a study record (no list of runs)")
+        except (OSError, ValueError, RecursionError) as err:
+            raise DataError(f"--report-only: cannot read {path}: {str(err)[:200]}") from None
     else:
         from pfnet.data import SWEETHOME3D_PATH
         from pfnet.data.sources import pick_source

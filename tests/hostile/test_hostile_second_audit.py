@@ -344,3 +344,124 @@ def test_render_draws_huge_clouds_thinned_and_ascii_ply_lines_are_bounded(tmp_pa
     ply.write_text(header + "1\n" * 10)
     with pytest.raises(DataError, match="ASCII PLY declares 30000001 lines"):
         read_point_cloud(ply)
+
+
+# ----------------------------------------------------------------------------------------
+# The fifth audit's variants.
+
+
+def test_publish_writes_only_plain_names_into_real_folders(tmp_path: Path) -> None:
+    import json
+
+    from pfnet.errors import DataError
+    from pfnet.study import publish
+
+    out = tmp_path / "results"
+    (out / "runs" / "ok").mkdir(parents=True)
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "config.json").write_text("mine")
+    for name in ("config.json", "log.jsonl", "eval-missing.json", "eval-whole.json"):
+        (out / "runs" / "ok" / name).write_text("{}")
+    for name, message in (("../../victim", "not allowed in a file name"), ("..", "is not a name")):
+        (out / "results.json").write_text(json.dumps({"runs": [{"name": name}]}))
+        with pytest.raises(DataError, match=message):
+            publish(out, tmp_path / "pub")
+    assert (victim / "config.json").read_text() == "mine"
+    (out / "results.json").write_text(json.dumps({"runs": [{"name": "ok"}]}))
+    pub = tmp_path / "pub2"
+    (pub / "runs" / "ok").mkdir(parents=True)
+    (pub / "runs" / "ok" / "config.json").symlink_to(victim / "config.json")  # a planted file link
+    publish(out, pub)
+    assert (victim / "config.json").read_text() == "mine"  # replaced the link, not its target
+    assert not (pub / "runs" / "ok" / "config.json").is_symlink()
+    linked = tmp_path / "pub3"
+    linked.mkdir()
+    (linked / "runs").symlink_to(victim)
+    with pytest.raises(DataError, match="is a link"):
+        publish(out, linked)
+
+
+def test_demo_refuses_a_planted_link_among_its_folders(tmp_path: Path, capsys) -> None:
+    pytest.importorskip("torch")
+    out = tmp_path / "demo"
+    out.mkdir()
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (out / "predictions").symlink_to(victim)
+    args = ["demo", "--out", str(out), "--procedural", "--count", "3", "--points", "512"]
+    assert main([*args, "--epochs", "1"]) == 1
+    assert "is a link; the demo writes only into real folders" in capsys.readouterr().err
+    assert list(victim.iterdir()) == []
+
+
+def test_checkpoint_tables_with_other_than_plain_tensors_are_one_line(
+    tmp_path: Path, checkpoint: Path, capsys
+) -> None:
+    torch = pytest.importorskip("torch")
+    state = torch.load(checkpoint, weights_only=True)
+    scan = tmp_path / "s.ply"
+    write_ply(scan, np.random.default_rng(0).normal(size=(300, 3)).astype(np.float32))
+    first = next(iter(state["model"]))
+    for label, value, message in (
+        ("int", 1, "is not a plain tensor"),
+        ("sparse", state["model"][first].to_sparse(), "cannot be read"),  # torch refuses it
+    ):
+        forged = {**state, "model": {**state["model"], first: value}}
+        path = tmp_path / f"{label}.pt"
+        torch.save(forged, path)
+        assert (
+            main(["complete", str(scan), "--checkpoint", str(path), "--out", str(tmp_path / "o")])
+            == 1
+        )
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and len(err.splitlines()) == 1
+
+
+def test_manifests_with_odd_split_records_and_forged_member_dtypes(
+    tmp_path: Path, tiny_dataset: Path
+) -> None:
+    import json
+
+    from pfnet.data import load_split
+    from pfnet.errors import DataError
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    for splits in ("x", [1], None, {"test": "x"}):
+        (data / "manifest.json").write_text(json.dumps({**manifest, "splits": splits}))
+        assert len(load_split(data, "test")) > 0  # no record to compare with: still readable
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    test = load_split(data, "test")
+    for member, array, message in (
+        ("category.npy", np.zeros(len(test), dtype="|S700"), "declares strings of 700 characters"),
+        ("points.npy", np.zeros((len(test), 512, 4), np.float32), r"has points of shape \(4,\)"),
+    ):
+        arrays = {"points": test.points, "category": test.category, "name": test.name}
+        arrays[member[:-4]] = array
+        np.savez(data / "test.npz", **arrays)
+        with pytest.raises(DataError, match=message):
+            load_split(data, "test")
+
+
+def test_a_missing_torch_is_one_line_and_other_missing_modules_stay_visible(
+    monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    import pfnet.list_models
+
+    def needs(name):
+        def run(_args):
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+
+        return run
+
+    monkeypatch.setattr(pfnet.list_models, "run", needs("torch"))
+    assert main(["models"]) == 1
+    assert (
+        "needs PyTorch, which is not installed: pip install 'pfnet[train]'"
+        in capsys.readouterr().err
+    )
+    monkeypatch.setattr(pfnet.list_models, "run", needs("pfnet.nothing"))
+    with pytest.raises(ModuleNotFoundError):
+        main(["models"])

@@ -220,7 +220,8 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     if not path.is_file():
         raise DataError(f"{path}: missing split file")
     try:
-        totals = manifest.get("splits", {}).get(split, {})
+        splits = manifest.get("splits")
+        totals = splits.get(split) if isinstance(splits, dict) else None
         rows = totals.get("total") if isinstance(totals, dict) else None
         declared = manifest.get("points")
         _check_members(
@@ -288,6 +289,8 @@ def _check_members(path: Path, rows: int | None, points: int | None) -> None:
                 raise DataError(f"{name} holds {shape[:1]} shapes, the manifest says {rows}")
             if info.filename == "points.npy" and points is not None and shape[1:2] != (points,):
                 raise DataError(f"{name} has clouds of shape {shape[1:]}, not {points} points")
+            if info.filename in ("points.npy", "extra.npy") and shape[2:] != (3,):
+                raise DataError(f"{name} has points of shape {shape[2:]}, not (3,)")
 
 
 def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:

@@ -188,6 +188,9 @@ def _run(tasks: list, workers: int, progress: bool | None, stop_on_failure: bool
         disable=progress is False or (progress is None and not sys.stderr.isatty()),
     )
     with bar:
+        # more processes than a few shapes each only cost start-up time and memory (128
+        # workers on 70 meshes took 37 s and 3 GB where 2 took 1.4 s)
+        workers = min(workers, max(1, len(tasks) // _MIN_ITEMS_PER_WORKER))
         if workers <= 1 or len(tasks) < _MIN_ITEMS_PER_WORKER * 2:
             outcomes = map(process_item, tasks)
             pool = None

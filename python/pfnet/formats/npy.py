@@ -32,9 +32,10 @@ def check_npy_header(
             shape, _, dtype = npy_format.read_array_header_2_0(fh)
     except (ValueError, EOFError) as err:
         raise DataError(f"{name}: not a valid .npy array file ({err})") from None
-    if max_chars is not None and dtype.kind == "U" and dtype.itemsize > 4 * max_chars:
+    width = dtype.itemsize // 4 if dtype.kind == "U" else dtype.itemsize
+    if max_chars is not None and dtype.kind in "US" and width > max_chars:
         # checked before the size: a forged width of 10^8 deflates to almost nothing
-        raise DataError(f"{name} declares strings of {dtype.itemsize // 4} characters")
+        raise DataError(f"{name} declares strings of {width} characters")
     needed = int(np.prod(shape, dtype=object)) * dtype.itemsize
     if needed > available - fh.tell():
         raise DataError(

@@ -7,7 +7,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from pfnet.errors import ConfigError
+from pfnet.errors import ConfigError, DataError
 from pfnet.study.paper import (
     PAPER_ORDER,
     PAPER_TABLE2_CHAIR_MISSING,
@@ -264,15 +264,44 @@ def readme_section(readme: Path) -> str:
 
 
 def publish(out: Path, dest: Path) -> None:
-    """Copy the small files of the results folder ``out`` into ``dest``."""
+    """Copy the small files of the results folder ``out`` into ``dest``.
+
+    Run names come from ``results.json`` and are checked like data set names (no ``..``, no
+    separators); every file is written by replacing it (a link planted in ``dest`` is
+    replaced, never written through), and a linked folder in ``dest`` is refused.
+
+    Raises:
+        DataError: A run name that is not a plain name, or a linked folder in ``dest``.
+    """
+    from pfnet.data.format import unsafe_component
+    from pfnet.io import atomic_path
+
     if dest.resolve() == out.resolve():
         return
+    try:
+        results = json.loads((out / "results.json").read_text())
+        names = [str(run["name"]) for run in results["runs"]]
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
+        raise DataError(
+            f"cannot publish: {out / 'results.json'} is unreadable: {str(err)[:200]}"
+        ) from None
+    for name in names:
+        problem = unsafe_component(name)
+        if problem:
+            raise DataError(f"cannot publish: run name {name!r} in results.json {problem}")
+    for folder in [dest, dest / "runs", *(dest / "runs" / name for name in names)]:
+        if folder.is_symlink():
+            raise DataError(f"cannot publish: {folder} is a link; remove it first")
+
+    def copy(source: Path, target: Path) -> None:
+        with atomic_path(target) as tmp:
+            shutil.copyfile(source, tmp)
+
     (dest / "runs").mkdir(parents=True, exist_ok=True)
     for name in ("results.json", "results.md", "curves.png", "gallery.png"):
         if (out / name).is_file():
-            shutil.copyfile(out / name, dest / name)
-    results = json.loads((out / "results.json").read_text())
-    for run in results["runs"]:
-        (dest / "runs" / run["name"]).mkdir(exist_ok=True)
+            copy(out / name, dest / name)
+    for run in names:
+        (dest / "runs" / run).mkdir(exist_ok=True)
         for name in PUBLISHED_RUN_FILES:
-            shutil.copyfile(out / "runs" / run["name"] / name, dest / "runs" / run["name"] / name)
+            copy(out / "runs" / run / name, dest / "runs" / run / name)

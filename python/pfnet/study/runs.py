@@ -105,9 +105,12 @@ def read_log(run_dir: Path) -> list[dict[str, Any]]:
     """The rows of ``run_dir/log.jsonl`` (row 0: the untrained model)."""
     path = run_dir / "log.jsonl"
     try:
-        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    except (OSError, json.JSONDecodeError) as err:
-        raise DataError(f"cannot read the training log {path}: {err}") from None
+        rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError, RecursionError) as err:
+        raise DataError(f"cannot read the training log {path}: {str(err)[:200]}") from None
+    if not all(isinstance(row, dict) for row in rows):
+        raise DataError(f"cannot read the training log {path}: rows must be JSON objects")
+    return rows
 
 
 def plateau(curve: Sequence[float], tolerance: float = PLATEAU_TOLERANCE) -> dict[str, Any]:
@@ -153,7 +156,12 @@ def train_run(
     config = base.replace(model=run.model, missing_ratio=run.missing_ratio, seed=run.seed)
     done = completed_epochs(run_dir)
     if (run_dir / "last.pt").is_file():
-        stored = json.loads((run_dir / "config.json").read_text())
+        try:
+            stored = json.loads((run_dir / "config.json").read_text())
+            if not isinstance(stored, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError, RecursionError) as err:
+            raise DataError(f"{run_dir / 'config.json'} is unreadable: {str(err)[:200]}") from None
         # Only the length of the run may change (n_points is filled in from the data).
         free = (*RESUMABLE_FIELDS, "n_points")
         wanted = {k: v for k, v in config.to_dict().items() if k not in free}

@@ -26,13 +26,14 @@ def data_identity(data_dir: Path) -> dict[str, str]:
     manifest_path = Path(data_dir) / "manifest.json"
     try:
         manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
+        manifest = {}
+    if not isinstance(manifest, dict):
         manifest = {}
     keys = ("source", "points", "seed", "split", "categories", "pool", "normalization")
-    decisive = {key: manifest.get(key) for key in keys if isinstance(manifest, dict)}
-    decisive["train"] = (
-        manifest.get("splits", {}).get("train") if isinstance(manifest, dict) else None
-    )
+    decisive = {key: manifest.get(key) for key in keys}
+    splits = manifest.get("splits")
+    decisive["train"] = splits.get("train") if isinstance(splits, dict) else None
     train = Path(data_dir) / "train.npz"
     decisive["train_bytes"] = train.stat().st_size if train.is_file() else -1
     digest = hashlib.sha256(json.dumps(decisive, sort_keys=True, default=str).encode())
