@@ -17,7 +17,7 @@ import pytest
 
 from pfnet.data import test_protocol_crop
 from pfnet.data.format import SPLITS, CloudSet, write_dataset
-from pfnet.evaluate import evaluate_predictions, find_prediction_files
+from pfnet.evaluation import evaluate_predictions, find_prediction_files
 from pfnet.io import read_point_cloud, save_npy
 from pfnet.metrics import sample_metrics
 

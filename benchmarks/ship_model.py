@@ -20,8 +20,8 @@ import tempfile
 from pathlib import Path
 
 from pfnet.data import load_split, read_manifest
-from pfnet.evaluate import evaluate_predictions
-from pfnet.predict import predict_split
+from pfnet.evaluation import evaluate_predictions
+from pfnet.inference import predict_split
 from pfnet.shipped import SUFFIX, WEIGHTS_DIR, write_shipped
 
 

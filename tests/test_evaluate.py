@@ -12,7 +12,7 @@ import pytest
 from pfnet.cli import main
 from pfnet.data import load_split, missing_count
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluate import evaluate_predictions, find_prediction_files
+from pfnet.evaluation import evaluate_predictions, find_prediction_files
 from pfnet.gallery import pick_gallery
 from pfnet.io import save_npy, write_ply
 

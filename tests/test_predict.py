@@ -14,8 +14,8 @@ from pfnet.cli import main  # noqa: E402
 from pfnet.data import load_split, test_protocol_crop  # noqa: E402
 from pfnet.devices import inference_device  # noqa: E402
 from pfnet.errors import ConfigError  # noqa: E402
+from pfnet.inference import predict_split  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
-from pfnet.predict import predict_split  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 
 

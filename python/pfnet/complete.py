@@ -104,7 +104,7 @@ def complete_clouds(
     Returns:
         One float32 ``(M, 3)`` array per cloud.
     """
-    from pfnet.predict import predict_missing
+    from pfnet.inference import predict_missing
 
     n_input = int(model.n_points) - int(model.n_missing)
     transforms = [normalisation(c) for c in clouds]

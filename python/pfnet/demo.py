@@ -149,8 +149,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
     from pfnet.data import prepare_dataset, read_manifest
     from pfnet.devices import inference_device
-    from pfnet.evaluate import SCALE, evaluate_predictions, render_evaluation_gallery
-    from pfnet.predict import predict_split
+    from pfnet.evaluation import SCALE, evaluate_predictions, render_evaluation_gallery
+    from pfnet.inference import predict_split
     from pfnet.reports import format_table, write_json
     from pfnet.shipped import describe
     from pfnet.training import train

@@ -43,7 +43,7 @@ def render_completions(
         DataError: A folder has no prediction for a sample.
     """
     from pfnet.data import load_split, test_protocol_crop
-    from pfnet.evaluate import find_prediction_files
+    from pfnet.evaluation import find_prediction_files
     from pfnet.io import read_point_cloud
     from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
 

@@ -7,7 +7,7 @@ import csv
 import json
 from pathlib import Path
 
-from pfnet.evaluate import SCALE, Evaluation
+from pfnet.evaluation import SCALE, Evaluation
 
 
 def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:

@@ -193,8 +193,8 @@ def evaluate_run(run: StudyRun, data_dir: Path, run_dir: Path, device: str) -> d
     """Predict the test split with ``best.pt`` and score both regions; the run's record."""
     from pfnet.checkpoint import load_checkpoint
     from pfnet.data import missing_count
-    from pfnet.evaluate import evaluate_predictions
-    from pfnet.predict import config_value, predict_split
+    from pfnet.evaluation import evaluate_predictions
+    from pfnet.inference import config_value, predict_split
     from pfnet.reports import write_json
 
     checkpoint = run_dir / "best.pt"

@@ -1,0 +1,258 @@
+"""Scoring a folder of predictions against a data set split (the work behind ``pfnet evaluate``).
+
+A prediction folder holds one file per sample, ``PRED/<category>/<name>.<ext>`` with ``ext``
+one of ``.npy .ply .pcd .xyz .pts .txt`` (the first found in that order). The ground truth comes
+from the deterministic test protocol (DESIGN.md §3, :func:`pfnet.data.test_protocol_crop`):
+sample *i* of the split loses the ``round(r·N)`` points nearest ``VIEWPOINTS[i % 5]``.
+
+Regions (DESIGN.md §5):
+
+* ``missing``: the file holds the predicted missing region (any point count), scored
+  against the removed points.
+* ``whole``: the file holds the predicted missing region, merged with the partial input
+  before scoring, or (``--pred-is-complete``) a full completion; scored against the complete
+  cloud.
+
+Scores come from :func:`pfnet.metrics.sample_metrics` and :func:`pfnet.metrics.summarize`:
+per-category means, and the unweighted mean of the category means, Pred→GT and GT→Pred
+reported ×1000 as in the paper's tables.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.errors import ConfigError, DataError
+
+PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".pcd", ".xyz", ".pts", ".txt")
+"""Suffixes a prediction file may have, in the order they are looked for."""
+
+REGIONS = ("missing", "whole")
+# Data sets are normalised into the unit ball; a prediction reaching beyond this radius is
+# in other coordinates (a scan's own units, another normalisation) and is flagged.
+FAR = 10.0
+SCALE = 1000
+_JSON_METRICS = ("pred_to_gt", "gt_to_pred", "cd_l1", "f_score")
+
+
+@dataclass
+class Evaluation:
+    """The outcome of :func:`evaluate_predictions`.
+
+    Attributes:
+        report: The JSON document written by ``--json`` (schema in the README).
+        categories: Category of each scored sample, ``(K,)``.
+        names: Name of each scored sample, ``(K,)``.
+        per_sample: Raw per-sample metrics (float64 ``(K,)`` arrays, not scaled).
+        missing: ``<category>/<name>`` of samples without a prediction file.
+        unreadable: ``<category>/<name>`` of samples whose file could not be used.
+        reasons: Why each unreadable file was rejected (one line each).
+        unmatched: Prediction files that match no sample of the split.
+        n_samples: Number of samples in the split.
+        far: ``<category>/<name>`` of scored predictions with points more than
+            :data:`FAR` from the origin, where the data set's clouds lie within radius 1:
+            predictions in other coordinates, scored but probably not what was meant.
+    """
+
+    report: dict
+    categories: list[str]
+    names: list[str]
+    per_sample: dict[str, np.ndarray]
+    missing: list[str] = field(default_factory=list)
+    unreadable: list[str] = field(default_factory=list)
+    reasons: list[str] = field(default_factory=list)
+    unmatched: list[str] = field(default_factory=list)
+    n_samples: int = 0
+    far: list[str] = field(default_factory=list)
+
+
+def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, Path]:
+    """Map ``<category>/<name>`` to its prediction file (first suffix in PREDICTION_SUFFIXES).
+
+    A category entry that cannot be listed (a symlink loop, no permission) is named on
+    stderr (unless ``quiet``) and skipped; its samples then count as missing.
+    """
+    rank = {s: i for i, s in enumerate(PREDICTION_SUFFIXES)}
+    found: dict[str, tuple[int, Path]] = {}
+    with os.scandir(pred_dir) as categories:
+        for cat in categories:
+            try:
+                if not cat.is_dir() or cat.name.startswith("."):
+                    continue
+                with os.scandir(cat.path) as listing:
+                    entries = list(listing)
+            except OSError as err:
+                if not quiet:
+                    print(f"skipped {cat.path}: {err.strerror or err}", file=sys.stderr)
+                continue
+            for entry in entries:
+                stem, suffix = os.path.splitext(entry.name)
+                suffix = suffix.lower()
+                if suffix not in rank or entry.name.startswith("."):
+                    continue
+                key = f"{cat.name}/{stem}"
+                if key not in found or rank[suffix] < found[key][0]:
+                    found[key] = (rank[suffix], Path(entry.path))
+    return {key: path for key, (_, path) in found.items()}
+
+
+def _load(path: Path) -> np.ndarray | str:
+    from pfnet.io import read_point_cloud
+
+    try:
+        return read_point_cloud(path)
+    except DataError as err:
+        return str(err)
+
+
+def evaluate_predictions(
+    pred_dir: str | os.PathLike[str],
+    data_dir: str | os.PathLike[str],
+    *,
+    split: str = "test",
+    missing_ratio: float = 0.25,
+    region: str = "missing",
+    pred_is_complete: bool = False,
+    f_threshold: float = 0.01,
+    workers: int | None = None,
+) -> Evaluation:
+    """Score the prediction files in ``pred_dir`` against split ``split`` of ``data_dir``.
+
+    Args:
+        pred_dir: Folder of ``<category>/<name>.<ext>`` prediction files.
+        data_dir: A prepared data set (DESIGN.md §3).
+        split: ``train``, ``val`` or ``test``.
+        missing_ratio: Fraction of points the test protocol removes, in ``(0, 1)``.
+        region: ``"missing"`` or ``"whole"``.
+        pred_is_complete: With ``region="whole"``, files hold full completions and are
+            scored as they are instead of being merged with the partial input.
+        f_threshold: Distance threshold of the F-score.
+        workers: Threads reading files (default: ``min(8, cpu count + 4)``).
+
+    Returns:
+        An :class:`Evaluation`; samples without a usable file are listed, not scored.
+
+    Raises:
+        ConfigError: For a bad region, ratio or flag combination.
+        DataError: If the folders are missing, or no prediction at all could be scored.
+    """
+    from pfnet.data import load_split, test_protocol_crop
+    from pfnet.metrics import sample_metrics, summarize
+
+    if region not in REGIONS:
+        raise ConfigError(f"evaluate: --region must be one of {REGIONS}, got {region!r}")
+    if pred_is_complete and region != "whole":
+        raise ConfigError("evaluate: --pred-is-complete needs --region whole")
+    if not 0.0 < missing_ratio < 1.0:
+        raise ConfigError(f"evaluate: --missing-ratio must be in (0, 1), got {missing_ratio}")
+    if workers is not None and not 1 <= workers <= 256:
+        raise ConfigError(f"evaluate: --workers must be in [1, 256], got {workers}")
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise DataError(f"evaluate: prediction folder {pred_dir} does not exist")
+    clouds = load_split(data_dir, split)
+    points = np.asarray(clouds.points)
+    sample_keys = [f"{c}/{n}" for c, n in zip(clouds.category, clouds.name, strict=True)]
+    partial, removed = test_protocol_crop(points, missing_ratio)
+
+    files = find_prediction_files(pred_dir)
+    wanted = set(sample_keys)
+    unmatched = sorted(str(p) for k, p in files.items() if k not in wanted)
+    present = [i for i, key in enumerate(sample_keys) if key in files]
+    missing = [key for key in sample_keys if key not in files]
+    n_workers = workers or min(8, (os.cpu_count() or 1) + 4)
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        loaded = list(pool.map(_load, [files[sample_keys[i]] for i in present], chunksize=64))
+
+    preds, gts, scored, unreadable, reasons = [], [], [], [], []
+    for i, cloud in zip(present, loaded, strict=True):
+        if isinstance(cloud, str):
+            unreadable.append(sample_keys[i])
+            reasons.append(cloud)
+            continue
+        if region == "missing":
+            preds.append(cloud)
+            gts.append(removed[i])
+        else:
+            preds.append(cloud if pred_is_complete else np.concatenate([partial[i], cloud]))
+            gts.append(points[i])
+        scored.append(i)
+    if not scored:
+        raise DataError(
+            f"evaluate: no prediction in {pred_dir} could be scored against {split!r} of "
+            f"{data_dir} ({len(missing)} missing, {len(unreadable)} unreadable of "
+            f"{len(sample_keys)} samples; expected files like "
+            f"{pred_dir / sample_keys[0]}.npy)"
+            if sample_keys
+            else f"evaluate: split {split!r} of {data_dir} has no samples"
+        )
+    categories = [str(clouds.category[i]) for i in scored]
+    per_sample = sample_metrics(_stack_if_equal(preds), _stack_if_equal(gts), f_threshold)
+    summary = summarize(per_sample, categories, scale=float(SCALE))
+    report = {
+        "region": region,
+        "scale": SCALE,
+        "missing_ratio": float(missing_ratio),
+        "categories": {
+            cat: {"n": int(row["n"]), **{k: float(row[k]) for k in _JSON_METRICS}}
+            for cat, row in summary["categories"].items()
+        },
+        "mean": {k: float(summary["mean"][k]) for k in _JSON_METRICS},
+        "missing": missing,
+        "unreadable": unreadable,
+    }
+    return Evaluation(
+        report=report,
+        categories=categories,
+        names=[str(clouds.name[i]) for i in scored],
+        per_sample={k: np.asarray(v, dtype=np.float64) for k, v in per_sample.items()},
+        missing=missing,
+        unreadable=unreadable,
+        reasons=reasons,
+        unmatched=unmatched,
+        n_samples=len(sample_keys),
+        far=[sample_keys[i] for i, p in zip(scored, preds, strict=True) if np.abs(p).max() > FAR],
+    )
+
+
+def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:
+    """One ``(B, P, 3)`` array when every cloud has the same size (the fast batched path)."""
+    if len({len(c) for c in clouds}) == 1:
+        return np.stack(clouds)
+    return clouds
+
+
+def render_evaluation_gallery(
+    out: Path,
+    evaluation: Evaluation,
+    pred_dir: Path,
+    data_dir: Path,
+    *,
+    split: str,
+    missing_ratio: float,
+    count: int,
+    columns: dict[str, Path] | None = None,
+) -> Path:
+    """Render ``count`` scored samples (spread over the categories) as partial/pred/gt rows.
+
+    ``columns`` (title -> prediction folder) draws several models' completions of the same
+    samples side by side instead of ``pred_dir``'s alone.
+    """
+    from pfnet.gallery import pick_gallery, render_completions
+
+    chosen = pick_gallery(evaluation.categories, count)
+    return render_completions(
+        out,
+        data_dir,
+        columns or {"completion": pred_dir},
+        split=split,
+        missing_ratio=missing_ratio,
+        keys=[(evaluation.categories[k], evaluation.names[k]) for k in chosen],
+        title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing",
+    )

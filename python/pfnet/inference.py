@@ -1,0 +1,147 @@
+"""Running a trained model over a data set split with the deterministic test protocol.
+
+``pfnet predict`` is the command around :func:`predict_split`; ``complete`` uses
+:func:`predict_missing`. Output of :func:`predict_split`, ready for ``pfnet evaluate``::
+
+    PRED/<category>/<name>.npy    float32 (M, 3): the predicted missing region
+    PRED/predictions.json         checkpoint, data, split, protocol and model
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pfnet.devices import inference_device
+from pfnet.errors import ConfigError, DataError
+
+
+def config_value(config: Any, key: str) -> Any:
+    """Read ``key`` from a checkpoint's config, whether a dataclass or a plain dict."""
+    if isinstance(config, dict):
+        return config.get(key)
+    return getattr(config, key, None)
+
+
+def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: str) -> np.ndarray:
+    """Run ``model`` over ``partial`` clouds in batches.
+
+    Args:
+        model: A completion model in eval mode (``forward(partial) -> Completion``).
+        partial: float32 ``(S, n, 3)`` partial clouds.
+        batch_size: Clouds per forward pass.
+        device: Torch device the model lives on.
+
+    Returns:
+        float32 ``(S, M, 3)`` predicted missing regions.
+    """
+    import torch
+    from tqdm import tqdm
+
+    if batch_size < 1:
+        raise ConfigError(f"--batch-size must be at least 1, got {batch_size}")
+    outputs = []
+    starts = range(0, len(partial), batch_size)
+    with torch.inference_mode():
+        for start in tqdm(starts, desc="predict", unit="batch", disable=None, leave=False):
+            batch = torch.from_numpy(np.ascontiguousarray(partial[start : start + batch_size]))
+            completion = model(batch.to(device=device, dtype=torch.float32))
+            outputs.append(completion.detail.float().cpu().numpy())
+    return np.concatenate(outputs).astype(np.float32, copy=False)
+
+
+def predict_split(
+    checkpoint: str | os.PathLike[str] | None,
+    data_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    split: str = "test",
+    missing_ratio: float | None = None,
+    batch_size: int = 32,
+    device: str = "auto",
+) -> dict:
+    """Predict every sample of ``split`` and write ``out_dir`` (see the module docstring).
+
+    Args:
+        checkpoint: A checkpoint written by ``pfnet train``, a model file or a shipped
+            model's name; ``None`` for the default shipped model.
+        data_dir: A prepared data set.
+        out_dir: Prediction folder to create or fill (existing files are replaced).
+        split: ``train``, ``val`` or ``test``.
+        missing_ratio: Ratio of the test crop; default: the checkpoint's training ratio.
+        batch_size: Clouds per forward pass.
+        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Returns:
+        The ``predictions.json`` document.
+
+    Raises:
+        ConfigError: Bad device, batch size or ratio.
+        DataError: Unreadable checkpoint or data set.
+    """
+    from pfnet.checkpoint import load_checkpoint
+    from pfnet.data import load_split, test_protocol_crop
+    from pfnet.io import atomic_path, refuse_overlap, save_npy
+    from pfnet.shipped import describe, resolve_checkpoint
+
+    device = inference_device(device)
+    checkpoint = resolve_checkpoint(checkpoint)
+    refuse_overlap(out_dir, [data_dir, checkpoint])
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"--out {out_dir} is a file; name a folder for the predictions")
+    model, config = load_checkpoint(checkpoint, device=device)
+    trained_ratio = config_value(config, "missing_ratio")
+    ratio = float(trained_ratio if missing_ratio is None else missing_ratio)
+    if not 0.0 < ratio < 1.0:
+        raise ConfigError(f"--missing-ratio must be in (0, 1), got {ratio}")
+    clouds = load_split(data_dir, split)
+    if len(clouds) == 0:
+        raise DataError(f"split {split!r} of {data_dir} has no samples")
+    points = np.asarray(clouds.points, dtype=np.float32)
+    partial, removed = test_protocol_crop(points, ratio)
+    detail = predict_missing(model, np.asarray(partial, dtype=np.float32), batch_size, device)
+
+    out = Path(out_dir)
+    categories = sorted(set(map(str, clouds.category)))
+    if "predictions.json" in categories:  # its folder would stand where the record goes
+        raise DataError(f"{data_dir}: a category is named predictions.json")
+    for category in categories:
+        folder = out / category
+        # a folder that is a symbolic link (or resolves elsewhere) would take the
+        # predictions outside --out: into the data set, over a checkpoint
+        if folder.is_symlink() or (
+            folder.exists() and not folder.resolve().is_relative_to(out.resolve())
+        ):
+            raise DataError(f"{folder} is a link out of --out {out}; remove it first")
+    out.mkdir(parents=True, exist_ok=True)
+    for category in categories:
+        (out / category).mkdir(exist_ok=True)
+    for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
+        save_npy(out / str(cat) / f"{name}.npy", cloud)
+    info = {
+        "checkpoint": describe(checkpoint),
+        "data": str(Path(data_dir).resolve()),
+        "split": split,
+        "protocol": {
+            "name": "test",
+            "missing_ratio": ratio,
+            "n_points": int(points.shape[1]),
+            "n_missing": int(removed.shape[1]),
+            "viewpoint": "VIEWPOINTS[i % 5] for sample i in split order",
+        },
+        "model": {
+            "name": config_value(config, "model"),
+            "n_points": config_value(config, "n_points"),
+            "missing_ratio": trained_ratio,
+            "n_predicted": int(detail.shape[1]),
+        },
+        "n_samples": len(clouds),
+        "device": device,
+    }
+    with atomic_path(out / "predictions.json") as tmp:
+        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
+    return info
