@@ -153,11 +153,18 @@ def run(args: argparse.Namespace) -> int:
 
     if args.report_only:
         data_dir = args.data if args.data is not None else out / "data"
+        try:  # a results.json edited by hand (or forged) must not end in a traceback
+            report = render_report(results)
+        except (KeyError, IndexError, TypeError, ValueError, OverflowError) as err:
+            raise DataError(
+                f"--report-only: {out / 'results.json'} is not a study record this pfnet can "
+                f"report ({type(err).__name__}: {str(err)[:120]})"
+            ) from None
         if (out / "runs").is_dir() and (data_dir / "manifest.json").is_file():
             write_results(out, results, data_dir, args.gallery_count)
         else:
             with atomic_path(out / "results.md") as tmp:
-                tmp.write_text(render_report(results))
+                tmp.write_text(report)
     published = out
     if args.publish is not None:
         publish(out, args.publish)

@@ -465,3 +465,33 @@ def test_a_missing_torch_is_one_line_and_other_missing_modules_stay_visible(
     monkeypatch.setattr(pfnet.list_models, "run", needs("pfnet.nothing"))
     with pytest.raises(ModuleNotFoundError):
         main(["models"])
+
+
+# ----------------------------------------------------------------------------------------
+# The sixth audit's variants (a study's forged results).
+
+RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results"
+
+
+@pytest.mark.skipif(not (RESULTS / "results.json").is_file(), reason="no published results")
+def test_forged_study_records_are_one_line_and_publish_nothing_half_way(
+    tmp_path: Path, capsys
+) -> None:
+    import json
+
+    out = tmp_path / "results"
+    shutil.copytree(RESULTS, out)
+    record = json.loads((out / "results.json").read_text())
+    forged = json.loads(json.dumps(record))
+    forged["settings"][0]["model"] = "zzz"
+    (out / "results.json").write_text(json.dumps(forged))
+    assert main(["reproduce", "--out", str(out), "--report-only"]) == 1
+    err = capsys.readouterr().err
+    assert "is not a study record this pfnet can report" in err and "Traceback" not in err
+    forged = json.loads(json.dumps(record))
+    forged["runs"][0]["name"] = 5
+    (out / "results.json").write_text(json.dumps(forged))
+    pub = tmp_path / "pub"
+    assert main(["reproduce", "--out", str(out), "--report-only", "--publish", str(pub)]) == 1
+    assert not pub.exists()
+    capsys.readouterr()

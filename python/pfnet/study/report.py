@@ -280,7 +280,9 @@ def publish(out: Path, dest: Path) -> None:
         return
     try:
         results = json.loads((out / "results.json").read_text())
-        names = [str(run["name"]) for run in results["runs"]]
+        names = [run["name"] for run in results["runs"]]
+        if not all(isinstance(name, str) for name in names):
+            raise TypeError("run names must be strings")
     except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
         raise DataError(
             f"cannot publish: {out / 'results.json'} is unreadable: {str(err)[:200]}"
@@ -292,6 +294,10 @@ def publish(out: Path, dest: Path) -> None:
     for folder in [dest, dest / "runs", *(dest / "runs" / name for name in names)]:
         if folder.is_symlink():
             raise DataError(f"cannot publish: {folder} is a link; remove it first")
+    for run in names:  # every source first: a failure must not leave half a publication
+        for name in PUBLISHED_RUN_FILES:
+            if not (out / "runs" / run / name).is_file():
+                raise DataError(f"cannot publish: {out / 'runs' / run / name} does not exist")
 
     def copy(source: Path, target: Path) -> None:
         with atomic_path(target) as tmp:
