@@ -1,21 +1,8 @@
 """``pfnet evaluate``: score any method's prediction folder against a data set.
 
-A prediction folder holds one file per sample, ``PRED/<category>/<name>.<ext>`` with ``ext``
-one of ``.npy .ply .pcd .xyz .pts .txt`` (the first found in that order). The ground truth comes
-from the deterministic test protocol (DESIGN.md §3, :func:`pfnet.data.test_protocol_crop`):
-sample *i* of the split loses the ``round(r·N)`` points nearest ``VIEWPOINTS[i % 5]``.
-
-Regions (DESIGN.md §5):
-
-* ``missing``: the file holds the predicted missing region (any point count), scored
-  against the removed points.
-* ``whole``: the file holds the predicted missing region, merged with the partial input
-  before scoring, or (``--pred-is-complete``) a full completion; scored against the complete
-  cloud.
-
-Scores come from :func:`pfnet.metrics.sample_metrics` and :func:`pfnet.metrics.summarize`:
-per-category means, and the unweighted mean of the category means, Pred→GT and GT→Pred
-reported ×1000 as in the paper's tables.
+The scoring (file layout, regions, metrics) is :mod:`pfnet.evaluation`'s; this module holds
+the command: its options, the checks of its output paths and of ``PRED/predictions.json``,
+and what it prints.
 """
 
 from __future__ import annotations

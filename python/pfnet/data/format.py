@@ -249,12 +249,7 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
         strays = sorted(set(clouds.categories) - {str(c) for c in listed})
         if strays:
             raise DataError(f"{path}: categories {strays[:3]} are not in the manifest's list")
-    declared = manifest.get("points")
-    if isinstance(declared, int) and len(clouds) and clouds.n_points != declared:
-        raise DataError(
-            f"{path}: clouds of {clouds.n_points} points, but the manifest says {declared}"
-        )
-    return clouds
+    return clouds  # the point count was compared with the manifest by _check_members
 
 
 def _check_members(path: Path, rows: int | None, points: int | None) -> None:
