@@ -110,13 +110,15 @@ def check_report_path(
     inputs: Iterable[str | os.PathLike[str]],
     *,
     flag: str,
+    categories: Iterable[str] = (),
 ) -> None:
     """Refuse a report or picture path that would replace part of a command's inputs.
 
     Nothing may be written inside or over ``inputs`` (data sets, checkpoints); inside the
-    prediction folder ``pred_dir`` a report may replace an earlier report, never be named
-    as a point cloud file (existing or to come), the ``predictions.json`` record or a
-    hidden file.
+    prediction folder ``pred_dir`` a report goes directly in it (the subfolders are the
+    categories') and may replace an earlier report, never be named as a point cloud file
+    (existing or to come), a category folder (existing or to come, from ``categories``),
+    the ``predictions.json`` record or a hidden file.
 
     Raises:
         ConfigError: Naming the flag and the file.
@@ -128,12 +130,19 @@ def check_report_path(
         else:
             refuse_overlap(output, [item], flag=flag)
     target = Path(output).resolve()
-    if target.is_relative_to(Path(pred_dir).resolve()):
+    folder = Path(pred_dir).resolve()
+    if target.is_relative_to(folder):
         # whether or not it exists yet: predict writes its predictions after this check
+        if target.parent != folder:
+            raise ConfigError(
+                f"{flag}: {output} is inside a subfolder of the prediction folder {pred_dir}, "
+                "which holds the categories' predictions; write it in the folder or elsewhere"
+            )
         if (
             target.suffix.lower() in POINT_CLOUD_SUFFIXES
             or target.name == "predictions.json"
             or target.name.startswith(".")
+            or target.name in set(categories)
         ):
             raise ConfigError(
                 f"{flag}: writing {output} would overwrite a file of the prediction folder "

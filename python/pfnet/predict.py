@@ -59,8 +59,11 @@ def run(args: argparse.Namespace) -> int:
 
         if args.gallery.suffix.lower() != ".png":
             raise ConfigError(f"--gallery must be a .png file, got {args.gallery}")
+        from pfnet.data.format import split_categories
+
         inputs = [args.data, resolve_checkpoint(args.checkpoint)]
-        check_report_path(args.gallery, args.out, inputs, flag="--gallery")
+        categories = split_categories(args.data, args.split)  # the folders to come
+        check_report_path(args.gallery, args.out, inputs, flag="--gallery", categories=categories)
     info = predict_split(
         args.checkpoint,
         args.data,

@@ -248,11 +248,11 @@ def render_panels(
         bottom=0.0,
         top=1.0 - margin / fig.get_figheight(),
     )
-    out_path = Path(out)
+    out_path = Path(out).resolve()  # as the output checks saw it: "new/../x.png" makes no "new"
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)
-    return out_path
+    return Path(out)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

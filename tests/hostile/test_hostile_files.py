@@ -110,6 +110,66 @@ def test_npz_members_claiming_huge_shapes_are_refused(tmp_path: Path, tiny_datas
         load_split(data, "test")
 
 
+def _deflated_split(path: Path, rows: int, points: int, name_rows: int | None = None) -> None:
+    """A split of ``rows`` all-zero clouds, deflated (it compresses about 1000 times)."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for member, array in (
+            ("points", np.zeros((rows, points, 3), np.float32)),
+            ("category", np.full(rows if name_rows is None else name_rows, "chair")),
+            ("name", np.array([f"s{i}" for i in range(rows)])),
+        ):
+            with archive.open(f"{member}.npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, array)
+
+
+def test_a_deflate_bomb_in_a_split_is_refused_even_with_a_forged_manifest(
+    tmp_path: Path, tiny_dataset: Path
+) -> None:
+    """The sixth audit: a 1.2 MB test.npz expanded to 2.8 GB once its manifest row count was
+    forged to agree; point coordinates cannot compress that far, whatever the manifest says."""
+    import json
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    rows = 2_000  # 12 MB of zeros, deflated to a few kB: the same ratio as the audit's bomb
+    _deflated_split(data / "test.npz", rows, 512)
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["splits"]["test"] = {"total": rows, "categories": {"chair": rows}}
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DataError, match=r"points.npy claims to expand \d+ times; point coord"):
+        load_split(data, "test")
+    # without a manifest record, members must at least agree with one another
+    del manifest["splits"]
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    np.savez(
+        data / "test.npz",
+        points=np.ones((3, 512, 3), np.float32),
+        category=np.full(300, "chair"),
+        name=np.array(["a", "b", "c"]),
+    )
+    with pytest.raises(DataError, match=r"members hold different numbers of shapes"):
+        load_split(data, "test")
+
+
+def test_a_split_larger_than_the_free_memory_is_refused_before_loading(
+    tmp_path: Path, tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import shutil
+
+    from pfnet.data import format as data_format
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    monkeypatch.setattr(data_format, "available_memory", lambda: 10_000)
+    with pytest.raises(
+        DataError, match=r"test.npz: loading the split needs [\d.]+ MB of memory; 0.0 MB are"
+    ):
+        load_split(data, "test")
+    monkeypatch.setattr(data_format, "available_memory", lambda: None)  # not Linux: no check
+    assert len(load_split(data, "test")) == 12
+
+
 def test_one_bad_file_does_not_stop_a_complete_batch(tmp_path: Path, capsys) -> None:
     torch = pytest.importorskip("torch")
     from pfnet.checkpoint import save_checkpoint

@@ -152,6 +152,8 @@ def test_evaluate_and_render_outputs_never_replace_inputs(
     before = _tree(tmp_path)
     base = ["evaluate", str(pred), "--data", str(tiny_dataset)]
     assert main([*base, "--json", str(victim)]) == 1
+    assert "inside a subfolder of the prediction folder" in capsys.readouterr().err
+    assert main([*base, "--json", str(pred / victim.name)]) == 1
     assert "would overwrite a file of the prediction folder" in capsys.readouterr().err
     # anything in the data set, not only the split being scored (the audit's train.npz)
     for name in ("test.npz", "train.npz", "new-report.json"):
@@ -162,9 +164,13 @@ def test_evaluate_and_render_outputs_never_replace_inputs(
     write_ply(shadowed, read_point_cloud(victim))
     (pred / "predictions.json").write_text("{}")
     before = _tree(tmp_path)
-    for target in (shadowed, pred / "predictions.json"):
+    for target, message in (
+        (shadowed, "inside a subfolder of the prediction folder"),
+        (pred / shadowed.name, "would overwrite a file of the prediction folder"),
+        (pred / "predictions.json", "would overwrite a file of the prediction folder"),
+    ):
         assert main([*base, "--json", str(target), "--ignore-recorded-protocol"]) == 1
-        assert "would overwrite a file of the prediction folder" in capsys.readouterr().err
+        assert message in capsys.readouterr().err
     (pred / "predictions.json").unlink()
     # an earlier report in the prediction folder may be replaced
     report = pred / "metrics.json"

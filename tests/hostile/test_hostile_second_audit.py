@@ -201,6 +201,9 @@ def test_a_transposed_npy_cloud_is_refused(tmp_path: Path) -> None:
         read_point_cloud(path)
     np.save(path, np.random.default_rng(0).normal(size=(300, 7)).astype(np.float32))  # + normals
     assert read_point_cloud(path).shape == (300, 3)
+    np.save(path, np.zeros((1000, 100), np.float32))  # features, not points (sixth audit)
+    with pytest.raises(DataError, match=r"100 columns of 1000 rows; .*: not points\?"):
+        read_point_cloud(path)
 
 
 def test_an_unreadable_record_gives_a_short_line(
@@ -312,9 +315,12 @@ def test_forged_string_widths_and_category_names_in_a_split(
     # a forged manifest that lists a category named like predict's record file
     manifest = json.loads((data / "manifest.json").read_text())
     manifest["categories"] = [*manifest["categories"], "predictions.json"]
-    (data / "manifest.json").write_text(json.dumps(manifest))
     category = test.category.copy().astype("<U32")
+    counts = manifest["splits"]["test"]["categories"]  # ... and forges the record to agree
+    counts[str(category[0])] -= 1
+    counts["predictions.json"] = 1
     category[0] = "predictions.json"
+    (data / "manifest.json").write_text(json.dumps(manifest))
     np.savez(data / "test.npz", points=test.points, category=category, name=test.name)
     out = tmp_path / "pred"
     args = ["predict", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(out)]
@@ -429,9 +435,32 @@ def test_manifests_with_odd_split_records_and_forged_member_dtypes(
     data = tmp_path / "data"
     shutil.copytree(tiny_dataset, data)
     manifest = json.loads((data / "manifest.json").read_text())
-    for splits in ("x", [1], None, {"test": "x"}):
+    # a record that is there must be whole and true (the sixth audit: these were accepted,
+    # and the split then went unchecked); a manifest with no "splits" at all is an early one
+    test_record = manifest["splits"]["test"]
+    wrong_count = {**test_record, "categories": {"chair": test_record["total"]}}
+    for splits in (
+        "x",
+        [1],
+        None,
+        {"test": "x"},
+        {"test": {"categories": "x"}},
+        {"test": {"count": "x"}},
+        {"test": {"total": True, "categories": {}}},
+        {"test": {**test_record, "total": test_record["total"] + 1}},
+    ):
         (data / "manifest.json").write_text(json.dumps({**manifest, "splits": splits}))
-        assert len(load_split(data, "test")) > 0  # no record to compare with: still readable
+        with pytest.raises(DataError, match="record of the test split is malformed"):
+            load_split(data, "test")
+    assert len(test_record["categories"]) > 1  # so that all-chairs is a wrong count
+    splits = {**manifest["splits"], "test": wrong_count}
+    (data / "manifest.json").write_text(json.dumps({**manifest, "splits": splits}))
+    with pytest.raises(DataError, match="shapes per category differ from the manifest"):
+        load_split(data, "test")
+    (data / "manifest.json").write_text(
+        json.dumps({k: v for k, v in manifest.items() if k != "splits"})
+    )
+    assert len(load_split(data, "test")) > 0  # no record to compare with: still readable
     (data / "manifest.json").write_text(json.dumps(manifest))
     test = load_split(data, "test")
     for member, array, message in (
@@ -495,3 +524,43 @@ def test_forged_study_records_are_one_line_and_publish_nothing_half_way(
     assert main(["reproduce", "--out", str(out), "--report-only", "--publish", str(pub)]) == 1
     assert not pub.exists()
     capsys.readouterr()
+
+
+# ----------------------------------------------------------------------------------------
+# The sixth audit's variants.
+
+
+def test_predict_gallery_may_not_be_a_category_folder_to_come_or_inside_one(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
+) -> None:
+    """A category named like the gallery made predict write every prediction, then fail on
+    the gallery; the check now knows the category folders before anything is written."""
+    import json
+    import shutil
+
+    from pfnet.data import load_split
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    test = load_split(data, "test")
+    category = np.where(test.category == "chair", "gallery.png", test.category)
+    np.savez(data / "test.npz", points=test.points, category=category, name=test.name)
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["categories"] = [*manifest["categories"], "gallery.png"]
+    record = manifest["splits"]["test"]["categories"]
+    record["gallery.png"] = record.pop("chair")
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    out = tmp_path / "pred"
+    base = ["predict", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(out)]
+    for gallery, message in (
+        (out / "gallery.png", "would overwrite a file of the prediction folder"),
+        (out / "lamp" / "g.png", "inside a subfolder of the prediction folder"),
+        (out / "new" / "g.png", "inside a subfolder of the prediction folder"),
+    ):
+        assert main([*base, "--device", "cpu", "--gallery", str(gallery)]) == 1
+        err = capsys.readouterr().err
+        assert message in err and len(err.splitlines()) == 1, err
+        assert not out.exists()
+    # "new/../g.png" is the folder itself: accepted, and no empty "new" is left behind
+    assert main([*base, "--device", "cpu", "--gallery", f"{out}/new/../g.png"]) == 0
+    assert (out / "g.png").is_file() and not (out / "new").exists()

@@ -38,6 +38,7 @@ __all__ = [
     "check_output",
     "load_split",
     "read_manifest",
+    "split_categories",
     "write_dataset",
 ]
 
@@ -200,6 +201,37 @@ def split_record(clouds: CloudSet) -> dict[str, object]:
     return {"total": len(clouds), "categories": dict(sorted(counts.items()))}
 
 
+def split_record_of(manifest: Mapping, split: str, where: Path) -> dict | None:
+    """The manifest's record of ``split`` (see :func:`split_record`), checked; ``None``
+    when the manifest has no ``splits`` at all (as an early pfnet wrote them)."""
+    if "splits" not in manifest:
+        return None
+    record = manifest["splits"].get(split) if isinstance(manifest["splits"], dict) else None
+    total = record.get("total") if isinstance(record, dict) else None
+    counts = record.get("categories") if isinstance(record, dict) else None
+    if (
+        not isinstance(total, int)
+        or isinstance(total, bool)
+        or total < 0
+        or not isinstance(counts, dict)
+        or not all(isinstance(n, int) and not isinstance(n, bool) for n in counts.values())
+        or sum(counts.values()) != total
+    ):
+        raise DataError(
+            f"{where}: the manifest's record of the {split} split is malformed (expected "
+            '{"total": N, "categories": {NAME: COUNT, ...}} with counts adding up to N)'
+        )
+    return record
+
+
+def split_categories(root: str | os.PathLike[str], split: str) -> list[str]:
+    """The categories of a split, from its manifest record when there is one (cheap)."""
+    record = split_record_of(read_manifest(root), split, Path(root) / MANIFEST_NAME)
+    if record is not None:
+        return sorted(record["categories"])
+    return load_split(root, split).categories
+
+
 def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     """Load one split of a dataset into memory.
 
@@ -211,7 +243,8 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
         The split's :class:`CloudSet`, in the stored order (the order the test protocol uses).
 
     Raises:
-        DataError: Unknown split, missing or malformed file.
+        DataError: Unknown split, missing or malformed file, or one that disagrees with the
+            manifest's record of the split.
     """
     if split not in SPLITS:
         raise DataError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
@@ -219,14 +252,12 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     path = Path(root) / f"{split}.npz"
     if not path.is_file():
         raise DataError(f"{path}: missing split file")
+    record = split_record_of(manifest, split, Path(root) / MANIFEST_NAME)
     try:
-        splits = manifest.get("splits")
-        totals = splits.get(split) if isinstance(splits, dict) else None
-        rows = totals.get("total") if isinstance(totals, dict) else None
         declared = manifest.get("points")
         _check_members(
             path,
-            rows if isinstance(rows, int) else None,
+            record["total"] if record is not None else None,
             declared if isinstance(declared, int) else None,
         )
         with np.load(path, allow_pickle=False) as data:
@@ -249,7 +280,18 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
         strays = sorted(set(clouds.categories) - {str(c) for c in listed})
         if strays:
             raise DataError(f"{path}: categories {strays[:3]} are not in the manifest's list")
+    if record is not None and split_record(clouds)["categories"] != record["categories"]:
+        raise DataError(
+            f"{path}: its shapes per category differ from the manifest's record of the split"
+        )
     return clouds  # the point count was compared with the manifest by _check_members
+
+
+# Float32 coordinates of real shapes hardly compress (about 1.1 times); a member that claims
+# to expand far more is a decompression bomb (a 1.2 MB split once expanded to 2.8 GB).
+MAX_POINTS_COMPRESSION = 16
+# Characters of a category or a name (write_dataset's names are far shorter).
+MAX_NAME_CHARS = 200
 
 
 def _check_members(path: Path, rows: int | None, points: int | None) -> None:
@@ -257,11 +299,15 @@ def _check_members(path: Path, rows: int | None, points: int | None) -> None:
 
     A member whose header claims 10^12 points would make numpy try to allocate terabytes.
     Members are stored uncompressed by :func:`write_dataset`; a compressed member is checked
-    against its uncompressed size, which the zip directory records.
+    against its uncompressed size, which the zip directory records, and the coordinates
+    against :data:`MAX_POINTS_COMPRESSION`. Every member must hold the same number of
+    shapes (the manifest's, when it records one), so the names cannot outgrow the points.
     """
     from pfnet.formats.npy import check_npy_header
 
     archive_size = path.stat().st_size
+    shapes: dict[str, tuple[int, ...]] = {}
+    needed = 0
     with zipfile.ZipFile(path) as archive:
         for info in archive.infolist():
             if not info.filename.endswith(".npy"):
@@ -270,22 +316,56 @@ def _check_members(path: Path, rows: int | None, points: int | None) -> None:
             # (deflate expands at most about 1032 times).
             if info.compress_size > archive_size:
                 raise DataError(f"{path}: member {info.filename} is larger than the archive")
-            ratio = 1 if info.compress_type == zipfile.ZIP_STORED else 1032
+            name = f"{path}: member {info.filename}"
+            coordinates = info.filename in ("points.npy", "extra.npy")
+            if info.compress_type == zipfile.ZIP_STORED:
+                ratio = 1
+            else:
+                ratio = MAX_POINTS_COMPRESSION if coordinates else 1032
             available = min(info.file_size, info.compress_size * ratio)
+            if coordinates and info.file_size > info.compress_size * ratio + 4096:
+                raise DataError(
+                    f"{name} claims to expand {info.file_size / max(info.compress_size, 1):.0f} "
+                    f"times; point coordinates do not compress beyond {MAX_POINTS_COMPRESSION} "
+                    "(a decompression bomb?)"
+                )
             with archive.open(info) as member:
-                name = f"{path}: member {info.filename}"
                 # names are at most 200 characters: a forged width of 10^8 made five names
                 # take 3 GB before they were refused
-                limit = 200 if info.filename in ("category.npy", "name.npy") else None
-                shape, _ = check_npy_header(name, member, available, max_chars=limit)
+                limit = None if coordinates else MAX_NAME_CHARS
+                shape, dtype = check_npy_header(name, member, available, max_chars=limit)
+            shapes[info.filename] = shape
+            needed += int(np.prod(shape, dtype=object)) * dtype.itemsize
             # ... and against the manifest, before anything is unpacked (a deflated 8 MB
             # member of 300,000 zero clouds took 2.4 GB before the count was compared)
             if rows is not None and shape[:1] != (rows,):
                 raise DataError(f"{name} holds {shape[:1]} shapes, the manifest says {rows}")
             if info.filename == "points.npy" and points is not None and shape[1:2] != (points,):
                 raise DataError(f"{name} has clouds of shape {shape[1:]}, not {points} points")
-            if info.filename in ("points.npy", "extra.npy") and shape[2:] != (3,):
+            if coordinates and shape[2:] != (3,):
                 raise DataError(f"{name} has points of shape {shape[2:]}, not (3,)")
+    counts = {member: shape[:1] for member, shape in shapes.items()}
+    if len(set(counts.values())) > 1:
+        listed = ", ".join(f"{m} {c}" for m, c in sorted(counts.items()))
+        raise DataError(f"{path}: members hold different numbers of shapes ({listed})")
+    free = available_memory()
+    if free is not None and needed > free:
+        raise DataError(
+            f"{path}: loading the split needs {needed / 1e6:,.1f} MB of memory; "
+            f"{free / 1e6:,.1f} MB are available"
+        )
+
+
+def available_memory() -> int | None:
+    """Bytes of memory the system can still give (MemAvailable), if it says."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:

@@ -42,12 +42,13 @@ def first_three_columns(file: Path, array: np.ndarray) -> np.ndarray:
     """Check a 2-D numeric array with at least three columns and return its first three."""
     if array.ndim != 2 or array.shape[1] < 3:
         raise DataError(f"{file}: expected an (N, 3) array of points, got shape {array.shape}")
-    if array.shape[1] > MAX_COLUMNS and array.shape[0] <= MAX_COLUMNS:
+    if array.shape[1] > MAX_COLUMNS:
         # x, y, z plus a few attributes (normals, colours, intensity) is a point cloud;
-        # a (3, 300) array is one stored transposed, not three points
+        # a (3, 300) array is one stored transposed, a (1000, 100) one a table of features
+        hint = "is the array transposed?" if array.shape[0] <= MAX_COLUMNS else "not points?"
         raise DataError(
             f"{file}: shape {array.shape} is {array.shape[1]} columns of {array.shape[0]} rows; "
-            "points are rows (N, 3): is the array transposed?"
+            f"points are rows (N, 3) with at most {MAX_COLUMNS - 3} attribute columns: {hint}"
         )
     if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.number):
         raise DataError(f"{file}: expected numeric coordinates, got dtype {array.dtype}")

@@ -8,11 +8,13 @@ import numpy as np
 
 from pfnet.errors import DataError
 from pfnet.formats import read_header
+from pfnet.formats.lines import BLOCK_LINES, numbered_lines, parse_block
 
 # Rows of PLY elements with list properties are walked one by one in Python (about a second
 # per million): more than this many is refused rather than taking minutes.
 MAX_WALKED_ROWS = 2_000_000
-# ASCII lines are split into Python strings (about 20 bytes of memory per character).
+# ASCII lines are parsed at about half a microsecond each, in blocks (bounded memory): more
+# than this many is refused rather than taking minutes.
 MAX_ASCII_LINES = 20_000_000
 
 _PLY_TYPES: dict[str, str] = {
@@ -48,9 +50,19 @@ def read_ply(file: Path) -> np.ndarray:
         if magic.strip() != b"ply":
             raise DataError(f"{file}: not a PLY file (first line is not 'ply')")
         header = read_header(fh, file, b"end_header")
+        elements, fmt = _parse_header(file, header)
+        vertex_index = [e[0] for e in elements].index("vertex")
+        if fmt == "ascii":
+            body_line = len(header) + 2  # after "ply" and the header's lines
+            return _read_ply_ascii(file, fh, elements, vertex_index, body_line)
         body = fh.read()
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    return _read_ply_binary(file, body, elements, vertex_index, endian)
+
+
+def _parse_header(file: Path, header: list[str]) -> tuple[list, str]:
+    """The elements ``(name, count, [(property, dtype, list count dtype or None)])`` and format."""
     fmt = None
-    # Each element: (name, count, [(prop name, dtype, list count dtype or None)])
     elements: list[tuple[str, int, list[tuple[str, str, str | None]]]] = []
     for line in header[:-1]:
         words = line.split()
@@ -98,60 +110,76 @@ def read_ply(file: Path) -> np.ndarray:
     for name, _dtype, list_type in props:
         if name in ("x", "y", "z") and list_type is not None:
             raise DataError(f"{file}: PLY vertex property {name!r} is a list")
-    if fmt == "ascii":
-        return _read_ply_ascii(file, body, elements, vertex_index)
-    endian = "<" if fmt == "binary_little_endian" else ">"
-    return _read_ply_binary(file, body, elements, vertex_index, endian)
+    return elements, fmt
 
 
-def _read_ply_ascii(file, body: bytes, elements, vertex_index: int) -> np.ndarray:
+def _read_ply_ascii(file, fh, elements, vertex_index: int, body_line: int) -> np.ndarray:
+    """The vertices of an ASCII body, read a block of lines at a time; later lines unread."""
     needed = sum(count for _, count, _ in elements[: vertex_index + 1])
     if needed > MAX_ASCII_LINES:
         raise DataError(
             f"{file}: ASCII PLY declares {needed} lines up to the vertices; pfnet reads at "
             f"most {MAX_ASCII_LINES} (save large clouds as binary PLY)"
         )
-    lines = body.decode("ascii", errors="replace").splitlines()
-    lines = [ln for ln in lines if ln.strip()]
-    start = sum(count for _, count, _ in elements[:vertex_index])
-    name, count, props = elements[vertex_index]
-    if len(lines) < start + count:
-        raise DataError(
-            f"{file}: truncated PLY data: expected {start + count} element lines before the "
-            f"end of the vertices, found {len(lines)}"
-        )
+    skip = sum(count for _, count, _ in elements[:vertex_index])
+    _, count, props = elements[vertex_index]
     columns = [p[0] for p in props]
-    if count == 0:
-        return np.empty((0, 3))
-    if any(p[2] is not None for p in props):
-        # A list property in the vertex element: parse each line on its own.
-        out = np.empty((count, 3), dtype=np.float64)
-        for i, line in enumerate(lines[start : start + count]):
-            values = line.split()
-            pos, row = 0, {}
-            try:
-                for pname, _, list_type in props:
-                    if list_type is None:
-                        row[pname] = float(values[pos])
-                        pos += 1
-                    else:
-                        length = int(values[pos])
-                        if length < 0:
-                            raise ValueError
-                        pos += length + 1
-                out[i] = (row["x"], row["y"], row["z"])
-            except (ValueError, IndexError):
-                raise DataError(f"{file}: malformed PLY vertex line {start + i + 1}") from None
-        return out
-    try:
-        table = np.array([line.split() for line in lines[start : start + count]], dtype=np.float64)
-    except ValueError:
-        raise DataError(
-            f"{file}: malformed PLY vertex data (non-numeric values or uneven rows)"
-        ) from None
-    if table.ndim != 2 or table.shape[1] < len(columns):
+    axes = [columns.index("x"), columns.index("y"), columns.index("z")]
+    has_lists = any(p[2] is not None for p in props)
+    parts: list[np.ndarray] = []  # not one array of `count` rows: the count may be forged
+    filled, seen = 0, 0
+    block: list[tuple[int, str]] = []
+    lines = numbered_lines(fh, file, body_line)
+    while filled < count:
+        for number, raw in lines:
+            if not raw.strip():
+                continue  # blank lines are not elements
+            seen += 1
+            if seen > skip:
+                block.append((number, raw.decode("ascii", errors="replace")))
+                if len(block) == min(BLOCK_LINES, count - filled):
+                    break
+        if not block:
+            raise DataError(
+                f"{file}: truncated PLY data: expected {skip + count} element lines before the "
+                f"end of the vertices, found {seen}"
+            )
+        parse = _ply_list_rows if has_lists else _ply_table_rows
+        parts.append(parse(file, block, props, axes))
+        filled += len(block)
+        block = []
+    return np.concatenate(parts) if parts else np.empty((0, 3))
+
+
+def _ply_table_rows(file, block, props, axes) -> np.ndarray:
+    table = parse_block("".join(line for _, line in block))
+    if table is None:
+        raise DataError(f"{file}: malformed PLY vertex data (non-numeric values or uneven rows)")
+    if table.shape[1] < len(props):
         raise DataError(f"{file}: PLY vertex lines have fewer values than properties")
-    return table[:, [columns.index("x"), columns.index("y"), columns.index("z")]]
+    return table[:, axes]
+
+
+def _ply_list_rows(file, block, props, axes) -> np.ndarray:
+    """Vertex lines with a list property: each line on its own."""
+    rows = np.empty((len(block), 3), dtype=np.float64)
+    for i, (number, line) in enumerate(block):
+        values = line.split()
+        pos, row = 0, {}
+        try:
+            for pname, _, list_type in props:
+                if list_type is None:
+                    row[pname] = float(values[pos])
+                    pos += 1
+                else:
+                    length = int(values[pos])
+                    if length < 0:
+                        raise ValueError
+                    pos += length + 1
+            rows[i] = (row["x"], row["y"], row["z"])
+        except (ValueError, IndexError):
+            raise DataError(f"{file}: malformed PLY vertex line {number}") from None
+    return rows
 
 
 def _read_ply_binary(file, body: bytes, elements, vertex_index: int, endian: str) -> np.ndarray:

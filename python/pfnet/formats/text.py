@@ -1,4 +1,10 @@
-"""Text point lists: ``.xyz``, ``.pts``, ``.txt``."""
+"""Text point lists: ``.xyz``, ``.pts``, ``.txt``.
+
+One point per line, ``x y z`` first (more columns such as normals or colours are ignored),
+separated by spaces, tabs or commas; ``#`` starts a comment, as does ``//`` at a line's
+start. A first line of column names ("x,y,z") or a Leica ``.pts`` point count is skipped.
+The file is read a block of lines at a time (:mod:`pfnet.formats.lines`).
+"""
 
 from __future__ import annotations
 
@@ -8,8 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
+from pfnet.formats.lines import BLOCK_LINES, numbered_lines, parse_block
 
 _SPLIT = re.compile(r"[,\s]+")
+_COMMENTS = ("#", "//")
 
 
 def _parse_floats(tokens: list[str]) -> list[float] | None:
@@ -21,43 +29,64 @@ def _parse_floats(tokens: list[str]) -> list[float] | None:
         return None
 
 
+def _tokens(line: str) -> list[str]:
+    """The values of one line, comments removed; empty for a blank or comment line."""
+    line = line.split("#", 1)[0].strip()
+    if not line or line.startswith("//"):
+        return []
+    return [t for t in _SPLIT.split(line) if t]
+
+
 def read_text(file: Path) -> np.ndarray:
-    try:
-        text = file.read_text(encoding="utf-8-sig")  # a byte-order mark is not a point
-    except UnicodeDecodeError as err:
-        raise DataError(f"{file}: not a text file (cannot decode as UTF-8)") from err
-    rows: list[list[str]] = []
-    line_numbers: list[int] = []
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.split("#", 1)[0].strip()  # comments, whole-line or after the values
-        if not line or line.startswith("//"):
-            continue
-        rows.append([t for t in _SPLIT.split(line) if t])
-        line_numbers.append(number)
-    if rows:
-        first = rows[0]
-        if len(first) == 1 and first[0].isdigit() and len(rows) > 1:
-            # Leica .pts: the first line is the number of points.
-            rows, line_numbers = rows[1:], line_numbers[1:]
-        elif all(_parse_floats([token]) is None for token in first):
-            # A header of column names such as "x,y,z" (no value in it is a number).
-            rows, line_numbers = rows[1:], line_numbers[1:]
-    if not rows:
+    blocks: list[np.ndarray] = []
+    block: list[tuple[int, str]] = []
+    first: tuple[int, list[str]] | None = None  # the first line with values, if skipped
+    seen_values = False
+    with open(file, "rb") as fh:
+        for number, raw in numbered_lines(fh, file):
+            try:  # a byte-order mark is not a point
+                line = raw.decode("utf-8-sig" if number == 1 else "utf-8")
+            except UnicodeDecodeError:
+                raise DataError(f"{file}: not a text file (cannot decode as UTF-8)") from None
+            if not seen_values:
+                tokens = _tokens(line)
+                if not tokens:
+                    continue
+                seen_values = True
+                leica_count = len(tokens) == 1 and tokens[0].isdigit()
+                column_names = all(_parse_floats([token]) is None for token in tokens)
+                if leica_count or column_names:
+                    first = (number, tokens)
+                    continue
+            block.append((number, line))
+            if len(block) == BLOCK_LINES:
+                blocks.append(_parse(file, block))
+                block = []
+    if block:
+        blocks.append(_parse(file, block))
+    points = np.concatenate(blocks) if blocks else np.empty((0, 3))
+    if len(points) == 0:
+        if first is not None and first[1][0].isdigit():  # a lone number is a point, not a count
+            raise DataError(f"{file}: line {first[0]} has 1 column(s), expected x y z")
         raise DataError(f"{file}: the file holds no points")
-    widths = {len(r) for r in rows}
-    if len(widths) == 1 and min(widths) >= 3 and not any("_" in t for r in rows for t in r):
-        # Fast path: every line has the same number of columns.
-        try:
-            table = np.array([t for r in rows for t in r], dtype=np.float64)
-            return table.reshape(len(rows), -1)[:, :3]
-        except ValueError:
-            pass  # fall through to find and name the bad line
-    points = np.empty((len(rows), 3), dtype=np.float64)
-    for i, (row, number) in enumerate(zip(rows, line_numbers, strict=True)):
+    return points
+
+
+def _parse(file: Path, block: list[tuple[int, str]]) -> np.ndarray:
+    """The block's points (k, 3); names the first bad line."""
+    text = "".join(line for _, line in block).replace(",", " ")
+    table = parse_block(text, _COMMENTS)
+    if table is not None and table.shape[1] >= 3:
+        return table[:, :3]
+    points = []  # uneven rows (x y z plus varying attributes) or a bad line: one at a time
+    for number, line in block:
+        row = _tokens(line)
+        if not row:
+            continue
         if len(row) < 3:
             raise DataError(f"{file}: line {number} has {len(row)} column(s), expected x y z")
         values = _parse_floats(row[:3])
         if values is None:
             raise DataError(f"{file}: line {number} is not numeric: {' '.join(row[:3])!r}")
-        points[i] = values
-    return points
+        points.append(values)
+    return np.array(points, dtype=np.float64).reshape(-1, 3)

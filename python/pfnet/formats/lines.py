@@ -1,0 +1,57 @@
+"""Reading numeric text tables line by line, in bounded memory.
+
+Text point formats (``.xyz``, ASCII PLY) are read a block of lines at a time, each block
+parsed by numpy's C parser; no line may exceed :data:`MAX_LINE_BYTES`. Memory then stays
+proportional to the points a file holds, whatever its lines hold: a 60 MB file of twenty
+million short lines once took 2.2 GB as Python strings, and one line of 400 million tokens
+5.2 GB.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+from pfnet.errors import DataError
+
+# A line of a point table holds a few numbers; a megabyte-long line is not a point.
+MAX_LINE_BYTES = 1 << 16
+# Lines parsed at once: bounds the Python objects alive at any time.
+BLOCK_LINES = 1 << 16
+
+
+def numbered_lines(fh: BinaryIO, file: Path, first_number: int = 1) -> Iterator[tuple[int, bytes]]:
+    """Yield ``(line number, line)`` for every line of ``fh``, refusing an overlong one."""
+    number = first_number
+    while True:
+        raw = fh.readline(MAX_LINE_BYTES + 1)
+        if not raw:
+            return
+        if len(raw) > MAX_LINE_BYTES:
+            raise DataError(
+                f"{file}: line {number} is longer than {MAX_LINE_BYTES} bytes; not a point table"
+            )
+        yield number, raw
+        number += 1
+
+
+def parse_block(text: str, comments: tuple[str, ...] = ()) -> np.ndarray | None:
+    """Parse lines of whitespace-separated numbers as one float64 table (N, columns).
+
+    Returns ``None`` when the lines are not a regular numeric table (uneven rows, a value
+    that is not a number) so that the caller can find and name the bad line. Underscores
+    ("1_0") and hexadecimal are not numbers here, as in the line-by-line fallbacks.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+        try:
+            return np.loadtxt(
+                io.StringIO(text), dtype=np.float64, comments=list(comments) or None, ndmin=2
+            )
+        except ValueError:
+            return None
