@@ -375,3 +375,30 @@ def test_val_data_validates_on_another_data_sets_split(tiny_dataset: Path, tmp_p
     assert runs["own"][1]["val_cd_l2"] != runs["other"][1]["val_cd_l2"]
     with pytest.raises(ConfigError, match="is inside the input"):
         train(config, tiny_dataset, other / "run", device="cpu", progress=False, val_data=other)
+
+
+def test_init_from_fine_tunes_from_a_trained_generator(tiny_dataset: Path, tmp_path: Path) -> None:
+    config = FAST.replace(model="pfnet-vanilla", epochs=1, width=0.125)
+    first = tmp_path / "first"
+    train(config, tiny_dataset, first, device="cpu", progress=False)
+    start, _ = load_checkpoint(first / "best.pt")
+    # a learning rate of 1e-12 leaves the weights where fine-tuning starts them
+    tuned = tmp_path / "tuned"
+    fine = config.replace(init_from=str(first / "best.pt"), lr=1e-12)
+    train(fine, tiny_dataset, tuned, device="cpu", progress=False)
+    after, stored = load_checkpoint(tuned / "best.pt")
+    assert stored.init_from == str(first / "best.pt")  # recorded with the run
+    weights = {k: v for k, v in start.state_dict().items() if k.endswith("weight")}
+    for key, value in weights.items():
+        np.testing.assert_allclose(after.state_dict()[key], value, atol=1e-6, err_msg=key)
+    fresh = tmp_path / "fresh"  # ... which a run without init_from does not
+    train(config.replace(lr=1e-12, seed=1), tiny_dataset, fresh, device="cpu", progress=False)
+    other, _ = load_checkpoint(fresh / "best.pt")
+    assert any(not np.allclose(other.state_dict()[k], v, atol=1e-3) for k, v in weights.items())
+    with pytest.raises(ConfigError, match=r"is another network: width 0.125 \(run: 0.25\)"):
+        train(fine.replace(width=0.25), tiny_dataset, tmp_path / "wide", device="cpu")
+    with pytest.raises(ConfigError, match="contains the input"):  # best.pt would be replaced
+        train(fine, tiny_dataset, first, device="cpu", progress=False)
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "cli"),
+                 "--init-from", "no-such-model", "--epochs", "1"])  # fmt: skip
+    assert code == 1

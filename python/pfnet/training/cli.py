@@ -45,6 +45,11 @@ OVERRIDES: dict[str, tuple[type, str]] = {
         str,
         "write last.pt every this long (10min, 90s, 1h) or N epochs (default 10min)",
     ),
+    "init_from": (
+        str,
+        "fine-tune: start the generator from a best.pt, model file or shipped model's name "
+        "(same model, width and points; fresh optimiser, schedule and discriminator)",
+    ),
 }
 
 

@@ -72,6 +72,10 @@ class TrainConfig:
         compile: Run the generator and discriminator through ``torch.compile``.
         save_every: How often ``last.pt`` is written besides the end and a stop: a time
             (``10min``, ``90s``, ``1h``) or a number of epochs (``5``).
+        init_from: Fine-tuning: start the generator from these weights (a ``best.pt``, a
+            model file or a shipped model's name) of the same model, width and points,
+            instead of a random initialisation; the optimiser, the schedules and the
+            discriminator start afresh. ``None``: a fresh network.
     """
 
     model: str = "pfnet"
@@ -108,6 +112,7 @@ class TrainConfig:
     precision: str = "fp32"
     compile: bool = False
     save_every: str = "10min"
+    init_from: str | None = None
 
     def __post_init__(self) -> None:
         # Lists (TOML, JSON, checkpoints) become tuples so configs compare and hash.
@@ -412,6 +417,12 @@ def _validate(c: TrainConfig) -> None:
     _require(c.precision in PRECISIONS, "precision", c.precision, f"one of {', '.join(PRECISIONS)}")
     _require(isinstance(c.compile, bool), "compile", c.compile, "true or false")
     _require(isinstance(c.save_every, str), "save_every", c.save_every, "a string such as 10min")
+    _require(
+        c.init_from is None or (isinstance(c.init_from, str) and c.init_from != ""),
+        "init_from",
+        c.init_from,
+        "a checkpoint path or a shipped model's name",
+    )
     SaveSchedule.parse(c.save_every)
     if c.n_points is not None:
         m = c.n_missing

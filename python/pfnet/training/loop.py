@@ -36,7 +36,7 @@ from pfnet.training import distributed
 from pfnet.training.batches import CompletionCollate, EpochBatches
 from pfnet.training.config import SaveSchedule, TrainConfig
 from pfnet.training.distributed import DistContext
-from pfnet.training.resume import check_resumable, data_identity, resumed_config
+from pfnet.training.resume import check_resumable, data_identity, resumed_config, start_from
 from pfnet.training.runlog import plot_curves, write_log
 from pfnet.training.saving import CheckpointWriter, cpu_snapshot
 from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
@@ -89,7 +89,8 @@ def train(
         ConfigError: Bad configuration, or a resume that changes the configuration.
         DataError: Missing or unusable dataset or checkpoint.
     """
-    refuse_overlap(out_dir, [data_dir] if val_data is None else [data_dir, val_data])
+    init = [config.init_from] if config.init_from and Path(config.init_from).exists() else []
+    refuse_overlap(out_dir, [data_dir, *([val_data] if val_data else []), *init])
     context = distributed.setup(device)
     try:
         val_dir = None if val_data is None else Path(val_data)
@@ -173,6 +174,8 @@ class Trainer:
 
         self.step = TrainingStep(config, context)
         self.generator = self.step.generator
+        if state is None and config.init_from is not None:
+            start_from(self.generator, config)
         self.sampler = DistributedSampler(
             self.train_set,
             num_replicas=context.world_size,

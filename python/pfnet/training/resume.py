@@ -1,4 +1,5 @@
-"""What ``--resume`` checks: the same data set, and a configuration changed only where allowed."""
+"""Where a run starts: what ``--resume`` checks (the same data set, a configuration changed
+only where allowed), and the weights ``init_from`` fine-tunes."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
 from pfnet.errors import ConfigError, DataError
 from pfnet.training.config import RESUMABLE_FIELDS, TrainConfig
@@ -96,3 +98,19 @@ def check_resumable(state: dict[str, Any], path: Path) -> None:
                 f"{path} holds NaN or infinite {part} weights (e.g. {broken[0]}): the run "
                 "diverged; start again from an earlier checkpoint"
             )
+
+
+def start_from(generator: nn.Module, config: TrainConfig) -> None:
+    """Copy the weights ``config.init_from`` names into ``generator`` (fine-tuning)."""
+    from pfnet.checkpoint import load_checkpoint
+
+    source, trained = load_checkpoint(config.init_from)
+    keys = ("model", "width", "n_points", "missing_ratio")
+    differ = [
+        f"{k} {getattr(trained, k)!r} (run: {getattr(config, k)!r})"
+        for k in keys
+        if getattr(trained, k) != getattr(config, k)
+    ]
+    if differ:
+        raise ConfigError(f"init_from {config.init_from} is another network: {', '.join(differ)}")
+    generator.load_state_dict(source.state_dict())
