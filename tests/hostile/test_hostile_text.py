@@ -87,3 +87,73 @@ def test_text_points_with_uneven_columns_and_comments_still_read(tmp_path: Path)
     count.write_text("7\n")
     with pytest.raises(DataError, match="line 1 has 1 column"):
         read_point_cloud(count)
+
+
+def test_a_split_member_numpy_would_prefer_is_refused(tmp_path: Path, tiny_dataset: Path) -> None:
+    """The seventh audit: numpy reads a member named "points" before "points.npy", so a
+    member without the suffix escaped every size check (598 kB → 1.2 GB)."""
+    import shutil
+    import zipfile
+
+    from pfnet.data import load_split
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    with zipfile.ZipFile(data / "test.npz", "a") as archive:
+        archive.writestr("points", b"\x93NUMPY forged")
+    with pytest.raises(DataError, match=r"test.npz: unexpected member 'points' \(a split holds"):
+        load_split(data, "test")
+
+
+def test_reports_never_replace_devices_pipes_or_links(tmp_path: Path, tiny_dataset: Path) -> None:
+    import os
+
+    from forge import write_predictions
+
+    from pfnet.cli import main
+
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    link = tmp_path / "link.json"
+    link.symlink_to(tmp_path / "elsewhere.json")
+    for target in (pipe, link, Path("/dev/null")):
+        code = main(["evaluate", str(pred), "--data", str(tiny_dataset), "--json", str(target)])
+        assert code == 1
+    assert pipe.is_fifo() and link.is_symlink() and not (tmp_path / "elsewhere.json").exists()
+    assert Path("/dev/null").is_char_device()
+
+
+def test_binary_bodies_are_mapped_not_read_and_headers_bounded(tmp_path: Path) -> None:
+    from pfnet.io import write_ply
+
+    path = tmp_path / "padded.ply"
+    write_ply(path, np.arange(30, dtype=np.float32).reshape(10, 3))
+    with open(path, "r+b") as fh:  # a sparse gigabyte after the points: no disk, no memory
+        fh.truncate(path.stat().st_size + 2**30)
+    tracemalloc.start()
+    try:
+        assert read_point_cloud(path).shape == (10, 3)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 10e6
+    header = tmp_path / "header.ply"
+    header.write_bytes(b"ply\nformat ascii 1.0\ncomment " + b"x" * (2 * MAX_LINE_BYTES))
+    with pytest.raises(DataError, match="header line 2 is longer than"):
+        read_point_cloud(header)
+
+
+def test_ascii_pcd_is_read_in_blocks_and_a_compression_bomb_refused(tmp_path: Path) -> None:
+    import struct
+
+    head = "VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
+    pcd = tmp_path / "tail.pcd"
+    pcd.write_text(head.format(n=3) + "POINTS 3\nDATA ascii\n1 2 3\n4 5 6 7\n7 8 9\n" + "x\n" * 99)
+    np.testing.assert_array_equal(read_point_cloud(pcd), [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    n = 20_000_000  # 240 MB declared in a few bytes
+    bomb = tmp_path / "bomb.pcd"
+    body = struct.pack("<II", 100, 12 * n) + bytes(100)
+    bomb.write_bytes((head.format(n=n) + f"POINTS {n}\nDATA binary_compressed\n").encode() + body)
+    with pytest.raises(DataError, match="claims to expand 2400000 times"):
+        read_point_cloud(bomb)

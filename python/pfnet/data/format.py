@@ -287,6 +287,7 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     return clouds  # the point count was compared with the manifest by _check_members
 
 
+MEMBERS = frozenset({"points.npy", "category.npy", "name.npy", "extra.npy"})
 # Float32 coordinates of real shapes hardly compress (about 1.1 times); a member that claims
 # to expand far more is a decompression bomb (a 1.2 MB split once expanded to 2.8 GB).
 MAX_POINTS_COMPRESSION = 16
@@ -310,8 +311,11 @@ def _check_members(path: Path, rows: int | None, points: int | None) -> None:
     needed = 0
     with zipfile.ZipFile(path) as archive:
         for info in archive.infolist():
-            if not info.filename.endswith(".npy"):
-                continue
+            if info.filename not in MEMBERS:  # numpy would read a member "points" unchecked
+                raise DataError(
+                    f"{path}: unexpected member {info.filename[:80]!r} (a split holds "
+                    f"{', '.join(sorted(MEMBERS))})"
+                )
             # The directory's sizes are data too: bound them by the archive's real size
             # (deflate expands at most about 1032 times).
             if info.compress_size > archive_size:

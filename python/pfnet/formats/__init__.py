@@ -9,20 +9,24 @@ against the bytes it has before anything is allocated or walked.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
 from pfnet.errors import DataError
+from pfnet.formats.lines import MAX_LINE_BYTES
 
 
 def read_header(fh, file: Path, end: bytes, max_lines: int = 10_000) -> list[str]:
     """Read text header lines up to and including ``end``; return them without it."""
     lines: list[str] = []
-    for _ in range(max_lines):
-        raw = fh.readline()
+    for number in range(1, max_lines + 1):
+        raw = fh.readline(MAX_LINE_BYTES + 1)
         if not raw:
             raise DataError(f"{file}: truncated header (no {end.decode()!r} line)")
+        if len(raw) > MAX_LINE_BYTES:  # a 3 GB sparse file of one "line" took 6.4 GB
+            raise DataError(f"{file}: header line {number} is longer than {MAX_LINE_BYTES} bytes")
         try:
             line = raw.decode("ascii").strip()
         except UnicodeDecodeError as err:
@@ -32,6 +36,18 @@ def read_header(fh, file: Path, end: bytes, max_lines: int = 10_000) -> list[str
             return lines
         lines.append(line)
     raise DataError(f"{file}: header longer than {max_lines} lines")
+
+
+def map_rest(fh) -> np.ndarray | bytes:
+    """The rest of an open file as a read-only memory map (bytes when nothing is left).
+
+    Binary bodies are read through the map: only the pages a reader touches are loaded, so
+    a file padded with gigabytes after its points (or a sparse one) costs no memory.
+    """
+    start = fh.tell()
+    if os.fstat(fh.fileno()).st_size <= start:
+        return b""
+    return np.memmap(fh, dtype=np.uint8, mode="r", offset=start)
 
 
 # Columns a point table may have (x y z, normals, colours, intensity, labels, ...).

@@ -40,18 +40,23 @@ def numbered_lines(fh: BinaryIO, file: Path, first_number: int = 1) -> Iterator[
         number += 1
 
 
-def parse_block(text: str, comments: tuple[str, ...] = ()) -> np.ndarray | None:
-    """Parse lines of whitespace-separated numbers as one float64 table (N, columns).
+def parse_block(text: str, columns: int, comments: tuple[str, ...] = ()) -> np.ndarray | None:
+    """Parse the first ``columns`` numbers of every line as one float64 table (N, columns).
 
-    Returns ``None`` when the lines are not a regular numeric table (uneven rows, a value
-    that is not a number) so that the caller can find and name the bad line. Underscores
-    ("1_0") and hexadecimal are not numbers here, as in the line-by-line fallbacks.
+    Values after them are neither parsed nor kept (a wide row costs no memory). Returns
+    ``None`` when a line has fewer values or one that is not a number, so that the caller
+    can find and name the bad line. Underscores ("1_0") and hexadecimal are not numbers
+    here, as in the line-by-line fallbacks.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
         try:
             return np.loadtxt(
-                io.StringIO(text), dtype=np.float64, comments=list(comments) or None, ndmin=2
+                io.StringIO(text),
+                dtype=np.float64,
+                comments=list(comments) or None,
+                ndmin=2,
+                usecols=range(columns),
             )
         except ValueError:
             return None

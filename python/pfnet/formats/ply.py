@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import read_header
+from pfnet.formats import map_rest, read_header
 from pfnet.formats.lines import BLOCK_LINES, numbered_lines, parse_block
 
 # Rows of PLY elements with list properties are walked one by one in Python (about a second
@@ -55,9 +55,8 @@ def read_ply(file: Path) -> np.ndarray:
         if fmt == "ascii":
             body_line = len(header) + 2  # after "ply" and the header's lines
             return _read_ply_ascii(file, fh, elements, vertex_index, body_line)
-        body = fh.read()
-    endian = "<" if fmt == "binary_little_endian" else ">"
-    return _read_ply_binary(file, body, elements, vertex_index, endian)
+        endian = "<" if fmt == "binary_little_endian" else ">"
+        return _read_ply_binary(file, map_rest(fh), elements, vertex_index, endian)
 
 
 def _parse_header(file: Path, header: list[str]) -> tuple[list, str]:
@@ -132,6 +131,11 @@ def _read_ply_ascii(file, fh, elements, vertex_index: int, body_line: int) -> np
     lines = numbered_lines(fh, file, body_line)
     while filled < count:
         for number, raw in lines:
+            if number - body_line >= MAX_ASCII_LINES:  # blank lines count: they take time
+                raise DataError(
+                    f"{file}: more than {MAX_ASCII_LINES} lines before the end of the "
+                    "vertices (save large clouds as binary PLY)"
+                )
             if not raw.strip():
                 continue  # blank lines are not elements
             seen += 1
@@ -152,11 +156,12 @@ def _read_ply_ascii(file, fh, elements, vertex_index: int, body_line: int) -> np
 
 
 def _ply_table_rows(file, block, props, axes) -> np.ndarray:
-    table = parse_block("".join(line for _, line in block))
+    table = parse_block("".join(line for _, line in block), len(props))
     if table is None:
-        raise DataError(f"{file}: malformed PLY vertex data (non-numeric values or uneven rows)")
-    if table.shape[1] < len(props):
-        raise DataError(f"{file}: PLY vertex lines have fewer values than properties")
+        raise DataError(
+            f"{file}: malformed PLY vertex data (non-numeric values, or fewer values than "
+            "properties)"
+        )
     return table[:, axes]
 
 

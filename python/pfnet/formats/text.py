@@ -75,9 +75,9 @@ def read_text(file: Path) -> np.ndarray:
 def _parse(file: Path, block: list[tuple[int, str]]) -> np.ndarray:
     """The block's points (k, 3); names the first bad line."""
     text = "".join(line for _, line in block).replace(",", " ")
-    table = parse_block(text, _COMMENTS)
-    if table is not None and table.shape[1] >= 3:
-        return table[:, :3]
+    table = parse_block(text, 3, _COMMENTS)
+    if table is not None:
+        return table
     points = []  # uneven rows (x y z plus varying attributes) or a bad line: one at a time
     for number, line in block:
         row = _tokens(line)
