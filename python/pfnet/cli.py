@@ -1,10 +1,10 @@
 """The ``pfnet`` command line: one entry point, one module per subcommand.
 
-Each subcommand lives in its own module, which exposes
+Each subcommand lives in :mod:`pfnet.commands` as a module that exposes
 
 * ``HELP`` — a one-line summary for ``pfnet --help``,
 * ``add_arguments(parser)`` — its options,
-* ``run(args) -> int`` — the work; the exit code.
+* ``run(args) -> int`` — the work (calls into the library); the exit code.
 
 Command modules import heavy dependencies (torch, trimesh, matplotlib) inside ``run`` so
 that ``pfnet --help`` and ``import pfnet`` stay fast and work without torch.
@@ -21,15 +21,18 @@ from pfnet.errors import PfnetError
 
 # name -> module implementing HELP / add_arguments / run
 COMMANDS: dict[str, str] = {
-    "prepare": "pfnet.data.cli",
-    "train": "pfnet.training.cli",
-    "predict": "pfnet.predict",
-    "complete": "pfnet.complete",
-    "evaluate": "pfnet.evaluate",
-    "render": "pfnet.render",
-    "models": "pfnet.list_models",
-    "demo": "pfnet.demo",
-    "reproduce": "pfnet.reproduce",
+    name: f"pfnet.commands.{name}"
+    for name in (
+        "prepare",
+        "train",
+        "predict",
+        "complete",
+        "evaluate",
+        "render",
+        "models",
+        "demo",
+        "reproduce",
+    )
 }
 
 

@@ -89,7 +89,9 @@ def train(
         ConfigError: Bad configuration, or a resume that changes the configuration.
         DataError: Missing or unusable dataset or checkpoint.
     """
-    refuse_overlap(out_dir, [data_dir] if val_data is None else [data_dir, val_data])
+    refuse_overlap(
+        out_dir, [data_dir] if val_data is None else [data_dir, val_data], flag="run folder"
+    )
     context = distributed.setup(device)
     try:
         val_dir = None if val_data is None else Path(val_data)
@@ -121,7 +123,7 @@ class Trainer:
         self.device = context.device
         self.out_dir = out_dir
         if out_dir.exists() and not out_dir.is_dir():
-            raise ConfigError(f"--out {out_dir} exists and is not a folder")
+            raise ConfigError(f"run folder {out_dir} exists and is not a folder")
         state = None
         self.data_identity = data_identity(data_dir)
         if resume:
@@ -133,7 +135,7 @@ class Trainer:
             if comparable and stored.get("fingerprint") != self.data_identity["fingerprint"]:
                 raise ConfigError(
                     f"{out_dir / LAST} trained on another data set ({stored.get('path')}); "
-                    f"--data {data_dir} differs from it: resume with the same data"
+                    f"the data set {data_dir} differs from it: resume with the same data"
                 )
             if state["batches_done"] and state["world_size"] != context.world_size:
                 raise ConfigError(
@@ -142,8 +144,8 @@ class Trainer:
                 )
         elif (out_dir / LAST).exists():
             raise ConfigError(
-                f"{out_dir} already holds a run ({LAST}); pass --resume to continue it "
-                "or choose another --out"
+                f"{out_dir} already holds a run ({LAST}); resume it to continue it "
+                "or choose another run folder"
             )
 
         self.train_set = CompletionDataset(
@@ -367,12 +369,6 @@ class Trainer:
                     write_log(self.out_dir / LOG, self.history)
                     plot_curves(self.out_dir / CURVES, self.history)
                 writer.flush()
-                if interrupted and ctx.is_main:
-                    print(
-                        f"pfnet train: saved {self.out_dir / LAST} at epoch {self.epoch + 1}, "
-                        f"batch {self.batches_done}; continue with --resume",
-                        file=sys.stderr,
-                    )
             finally:
                 self._close_loader()
                 self._writer = None
