@@ -144,7 +144,7 @@ class Trainer:
                 )
         elif (out_dir / LAST).exists():
             raise ConfigError(
-                f"{out_dir} already holds a run ({LAST}); resume it to continue it "
+                f"{out_dir} already holds a run ({LAST}); resume it to continue, "
                 "or choose another run folder"
             )
 
