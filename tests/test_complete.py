@@ -9,7 +9,7 @@ torch = pytest.importorskip("torch")
 
 from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
-from pfnet.complete import (  # noqa: E402
+from pfnet.completion import (  # noqa: E402
     complete_clouds,
     network_input,
     normalisation,

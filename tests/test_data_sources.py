@@ -154,7 +154,7 @@ def test_source_errors(tmp_path: Path) -> None:
         _prepare(tmp_path / "empty", tmp_path / "out")
     (tmp_path / "odd" / "cat").mkdir(parents=True)
     (tmp_path / "odd" / "cat" / "notes.md").write_text("hello")
-    with pytest.raises(DataError, match="cannot detect the format .*pass --format"):
+    with pytest.raises(DataError, match="cannot detect the format .*give the format"):
         _prepare(tmp_path / "odd", tmp_path / "out")
     with pytest.raises(DataError, match="no shapes found; expected"):
         _prepare(tmp_path / "odd", tmp_path / "out", format="meshes")

@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("torch")
 
 import pfnet.shipped  # noqa: E402
-from pfnet import demo  # noqa: E402
+from pfnet import demo_pipeline  # noqa: E402
 from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
@@ -30,7 +30,7 @@ def _ship_a_512_point_model(folder):
 
 @pytest.mark.slow
 def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(demo, "SWEETHOME3D_FURNITURE", tmp_path / "no-furniture")
+    monkeypatch.setattr(demo_pipeline, "SWEETHOME3D_FURNITURE", tmp_path / "no-furniture")
     _ship_a_512_point_model(tmp_path)
     monkeypatch.setattr(pfnet.shipped, "WEIGHTS_DIR", tmp_path / "weights")
     out = tmp_path / "demo"
@@ -77,7 +77,7 @@ def test_demo_argument_errors(tmp_path, capsys):
 
 def test_the_budget_is_filled_with_epochs_timed_after_start_up():
     # 60 s left at 2.5 s an epoch: 24 more after the two timed ones; capped at 3x the preset.
-    assert demo.epochs_for_budget(60.0, 2.5, 30) == 26
-    assert demo.epochs_for_budget(600.0, 2.5, 30) == 90
-    assert demo.epochs_for_budget(-5.0, 2.5, 30) == 2  # start-up ate the budget
-    assert demo.epochs_for_budget(10.0, 0.0, 30) == 90
+    assert demo_pipeline.epochs_for_budget(60.0, 2.5, 30) == 26
+    assert demo_pipeline.epochs_for_budget(600.0, 2.5, 30) == 90
+    assert demo_pipeline.epochs_for_budget(-5.0, 2.5, 30) == 2  # start-up ate the budget
+    assert demo_pipeline.epochs_for_budget(10.0, 0.0, 30) == 90

@@ -294,12 +294,18 @@ def test_gallery(tmp_path, tiny_dataset):
 def test_errors(tmp_path, tiny_dataset, capsys):
     with pytest.raises(DataError, match="prediction folder .* does not exist"):
         evaluate_predictions(tmp_path / "nope", tiny_dataset)
-    with pytest.raises(ConfigError, match="--pred-is-complete needs --region whole"):
+    # The library speaks of its parameters, the command of its options.
+    with pytest.raises(ConfigError, match=r"^complete predictions \(pred_is_complete\) need"):
         evaluate_predictions(tmp_path, tiny_dataset, pred_is_complete=True)
-    with pytest.raises(ConfigError, match=r"--missing-ratio must be in \(0, 1\)"):
+    with pytest.raises(ConfigError, match=r"^missing ratio must be in \(0, 1\)"):
         evaluate_predictions(tmp_path, tiny_dataset, missing_ratio=1.0)
-    with pytest.raises(ConfigError, match="--region must be one of"):
+    with pytest.raises(ConfigError, match="^region must be one of"):
         evaluate_predictions(tmp_path, tiny_dataset, region="half")
+    base = ["evaluate", str(tmp_path), "--data", str(tiny_dataset)]
+    assert main([*base, "--pred-is-complete"]) == 1
+    assert "error: --pred-is-complete needs --region whole" in capsys.readouterr().err
+    assert main([*base, "--missing-ratio", "1"]) == 1
+    assert "error: --missing-ratio must be in (0, 1), got 1.0" in capsys.readouterr().err
     with pytest.raises(DataError, match=r"no prediction in .* could be scored .* 0 unreadable"):
         evaluate_predictions(tmp_path, tiny_dataset)
     assert main(["evaluate", str(tmp_path), "--data", str(tmp_path / "no-data")]) == 1

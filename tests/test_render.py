@@ -1,4 +1,4 @@
-"""Tests for pfnet.render: galleries and the ``pfnet render`` command."""
+"""Tests for pfnet.rendering: galleries and the ``pfnet render`` command."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from pfnet.cli import main
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import save_npy, write_ply
-from pfnet.render import (
+from pfnet.rendering import (
     GROUND_TRUTH_COLOR,
     PARTIAL_COLOR,
     PREDICTION_COLOR,
@@ -77,7 +77,7 @@ def test_gallery_errors(tmp_path, sphere):
         render_gallery(tmp_path / "g.png", [])
     with pytest.raises(ConfigError, match="'empty' has no point cloud"):
         render_gallery(tmp_path / "g.png", [RenderSample("empty")])
-    with pytest.raises(ConfigError, match=r"--views must be in \[1, 12\]"):
+    with pytest.raises(ConfigError, match=r"views must be in \[1, 12\]"):
         render_gallery(tmp_path / "g.png", [RenderSample("s", sphere)], views=0)
     bad = sphere.copy()
     bad[0, 0] = np.nan
@@ -135,7 +135,7 @@ def test_render_command_errors(tmp_path, sphere, capsys):
 
 
 def test_render_panels_draws_any_columns(tmp_path, sphere):
-    from pfnet.render import render_panels
+    from pfnet.rendering import render_panels
 
     rows = [
         ("chair/a_long_name_0001", [("input", [(sphere, PARTIAL_COLOR)])]

@@ -142,7 +142,7 @@ def test_run_folder_and_resume_errors(tiny_dataset: Path, tmp_path: Path) -> Non
     with pytest.raises(DataError, match="last.pt does not exist"):
         train(config, tiny_dataset, run, device="cpu", resume=True)
     train(config, tiny_dataset, run, device="cpu", progress=False)
-    with pytest.raises(ConfigError, match="already holds a run .*pass --resume"):
+    with pytest.raises(ConfigError, match="already holds a run .*resume it to continue"):
         train(config, tiny_dataset, run, device="cpu")
     with pytest.raises(ConfigError, match="cannot change lr when resuming: .* trained with 0.001"):
         train(config.replace(lr=0.5), tiny_dataset, run, device="cpu", resume=True)
@@ -175,6 +175,11 @@ def test_cli_reports_errors_in_one_line(
     assert "pfnet train: error: epochs must be an integer >= 1; got 0" in capsys.readouterr().err
     assert main([*argv, "--preset", "small", "--missing-ratio", "0.3"]) == 1
     assert "multiple of 128" in capsys.readouterr().err
+    # The library speaks of resuming; the command names its option.
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "last.pt").write_bytes(b"")
+    assert main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "old")]) == 1
+    assert "already holds a run (last.pt); pass --resume to continue" in capsys.readouterr().err
 
 
 def test_a_last_batch_of_one_trains(tiny_dataset: Path, tmp_path: Path) -> None:

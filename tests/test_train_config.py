@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from pfnet.commands.train import add_arguments, build_config
 from pfnet.errors import ConfigError
-from pfnet.training.cli import add_arguments, build_config
 from pfnet.training.config import PRESETS, TrainConfig, load_config, preset_config
 
 

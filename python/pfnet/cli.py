@@ -1,13 +1,17 @@
 """The ``pfnet`` command line: one entry point, one module per subcommand.
 
-Each subcommand lives in its own module, which exposes
+Each subcommand lives in :mod:`pfnet.commands` as a module that exposes
 
 * ``HELP`` — a one-line summary for ``pfnet --help``,
 * ``add_arguments(parser)`` — its options,
-* ``run(args) -> int`` — the work; the exit code.
+* ``run(args) -> int`` — the work (calls into the library); the exit code.
 
 Command modules import heavy dependencies (torch, trimesh, matplotlib) inside ``run`` so
 that ``pfnet --help`` and ``import pfnet`` stay fast and work without torch.
+
+:func:`main` is the one error boundary. The errors in :data:`USER_ERRORS` (bad input, bad
+files, the machine's limits) and a missing PyTorch are printed in one line with exit code 1,
+Ctrl-C exits 130; every other exception is a bug and propagates with its traceback.
 """
 
 from __future__ import annotations
@@ -17,20 +21,34 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from pfnet import errors
 from pfnet.errors import PfnetError
 
 # name -> module implementing HELP / add_arguments / run
 COMMANDS: dict[str, str] = {
-    "prepare": "pfnet.data.cli",
-    "train": "pfnet.training.cli",
-    "predict": "pfnet.predict",
-    "complete": "pfnet.complete",
-    "evaluate": "pfnet.evaluate",
-    "render": "pfnet.render",
-    "models": "pfnet.list_models",
-    "demo": "pfnet.demo",
-    "reproduce": "pfnet.reproduce",
+    name: f"pfnet.commands.{name}"
+    for name in (
+        "prepare",
+        "train",
+        "predict",
+        "complete",
+        "evaluate",
+        "render",
+        "models",
+        "demo",
+        "reproduce",
+    )
 }
+
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    PfnetError,  # DataError, ConfigError: bad input files or options
+    OSError,  # a full disk, a permission, a path that vanished
+    MemoryError,  # an input too large for this machine
+    # The geometry core's errors (bad shapes, non-finite points), once it raises its own
+    # class; a plain ValueError from it is a case the Python side failed to check: a bug.
+    *((errors.GeometryError,) if getattr(errors, "GeometryError", None) else ()),
+)
+"""What :func:`main` reports in one line: errors of the user's input or of the machine."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,7 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``pfnet`` with ``argv`` (default: ``sys.argv[1:]``); return the exit code."""
+    """Run ``pfnet`` with ``argv`` (default: ``sys.argv[1:]``); return the exit code.
+
+    Raises:
+        Exception: Anything but :data:`USER_ERRORS` and a missing PyTorch: a bug, shown
+            with its traceback.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -60,16 +83,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"pfnet {args.command}: interrupted", file=sys.stderr)
         return 130
-    except (PfnetError, ValueError, TypeError) as err:
-        print(f"pfnet {args.command}: error: {err}", file=sys.stderr)
-        return 1
-    except OSError as err:  # a full disk, a permission, a path that vanished: not a bug
-        where = f": {err.filename}" if err.filename else ""
-        print(f"pfnet {args.command}: error: {err.strerror or err}{where}", file=sys.stderr)
-        return 1
-    except MemoryError:
-        print(f"pfnet {args.command}: error: out of memory", file=sys.stderr)
-        return 1
     except ModuleNotFoundError as err:
         if (err.name or "").split(".")[0] != "torch":
             raise  # a missing module of our own is a bug: show it
@@ -79,6 +92,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
+    except USER_ERRORS as err:
+        print(f"pfnet {args.command}: error: {_one_line(err)}", file=sys.stderr)
+        return 1
+
+
+def _one_line(err: BaseException) -> str:
+    """The message of a user error: an OSError's reason and file, not its errno."""
+    if isinstance(err, MemoryError):
+        return "out of memory"
+    if isinstance(err, OSError):
+        where = f": {err.filename}" if err.filename else ""
+        return f"{err.strerror or err}{where}"
+    return str(err)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ Regions (DESIGN.md §5):
 * ``missing``: the file holds the predicted missing region (any point count), scored
   against the removed points.
 * ``whole``: the file holds the predicted missing region, merged with the partial input
-  before scoring, or (``--pred-is-complete``) a full completion; scored against the complete
+  before scoring, or (``pred_is_complete``) a full completion; scored against the complete
   cloud.
 
 Scores come from :func:`pfnet.metrics.sample_metrics` and :func:`pfnet.metrics.summarize`:
@@ -20,6 +20,7 @@ reported ×1000 as in the paper's tables.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -38,6 +39,8 @@ REGIONS = ("missing", "whole")
 # in other coordinates (a scan's own units, another normalisation) and is flagged.
 FAR = 10.0
 SCALE = 1000
+# Threads reading prediction files: more only contend for the disk.
+MAX_WORKERS = 256
 _JSON_METRICS = ("pred_to_gt", "gt_to_pred", "cd_l1", "f_score")
 
 
@@ -46,7 +49,7 @@ class Evaluation:
     """The outcome of :func:`evaluate_predictions`.
 
     Attributes:
-        report: The JSON document written by ``--json`` (schema in the README).
+        report: The JSON summary ``pfnet evaluate --json`` writes (schema in the README).
         categories: Category of each scored sample, ``(K,)``.
         names: Name of each scored sample, ``(K,)``.
         per_sample: Raw per-sample metrics (float64 ``(K,)`` arrays, not scaled).
@@ -146,16 +149,16 @@ def evaluate_predictions(
     from pfnet.metrics import sample_metrics, summarize
 
     if region not in REGIONS:
-        raise ConfigError(f"evaluate: --region must be one of {REGIONS}, got {region!r}")
+        raise ConfigError(f"region must be one of {REGIONS}, got {region!r}")
     if pred_is_complete and region != "whole":
-        raise ConfigError("evaluate: --pred-is-complete needs --region whole")
+        raise ConfigError("complete predictions (pred_is_complete) need the region 'whole'")
     if not 0.0 < missing_ratio < 1.0:
-        raise ConfigError(f"evaluate: --missing-ratio must be in (0, 1), got {missing_ratio}")
-    if workers is not None and not 1 <= workers <= 256:
-        raise ConfigError(f"evaluate: --workers must be in [1, 256], got {workers}")
+        raise ConfigError(f"missing ratio must be in (0, 1), got {missing_ratio}")
+    if workers is not None and not 1 <= workers <= MAX_WORKERS:
+        raise ConfigError(f"workers must be in [1, {MAX_WORKERS}], got {workers}")
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():
-        raise DataError(f"evaluate: prediction folder {pred_dir} does not exist")
+        raise DataError(f"prediction folder {pred_dir} does not exist")
     clouds = load_split(data_dir, split)
     points = np.asarray(clouds.points)
     sample_keys = [f"{c}/{n}" for c, n in zip(clouds.category, clouds.name, strict=True)]
@@ -185,12 +188,12 @@ def evaluate_predictions(
         scored.append(i)
     if not scored:
         raise DataError(
-            f"evaluate: no prediction in {pred_dir} could be scored against {split!r} of "
+            f"no prediction in {pred_dir} could be scored against {split!r} of "
             f"{data_dir} ({len(missing)} missing, {len(unreadable)} unreadable of "
             f"{len(sample_keys)} samples; expected files like "
             f"{pred_dir / sample_keys[0]}.npy)"
             if sample_keys
-            else f"evaluate: split {split!r} of {data_dir} has no samples"
+            else f"split {split!r} of {data_dir} has no samples"
         )
     categories = [str(clouds.category[i]) for i in scored]
     per_sample = sample_metrics(_stack_if_equal(preds), _stack_if_equal(gts), f_threshold)
@@ -219,6 +222,27 @@ def evaluate_predictions(
         n_samples=len(sample_keys),
         far=[sample_keys[i] for i, p in zip(scored, preds, strict=True) if np.abs(p).max() > FAR],
     )
+
+
+def recorded_protocol(pred_dir: str | os.PathLike[str]) -> tuple[str, float] | None:
+    """The split and missing ratio ``PRED/predictions.json`` records, or None without one.
+
+    Predictions made by ``pfnet predict`` record their split and crop; scoring them with
+    another crop compares each prediction with the wrong missing region, silently.
+
+    Raises:
+        DataError: If the record exists but cannot be read.
+    """
+    record = Path(pred_dir) / "predictions.json"
+    if not record.is_file():
+        return None
+    try:
+        info = json.loads(record.read_text(encoding="utf-8"))
+        ratio = float(info["protocol"]["missing_ratio"])
+        return str(info["split"]), ratio
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
+        # ValueError: bad UTF-8 or JSON; RecursionError: forged nesting
+        raise DataError(f"cannot read {record} ({type(err).__name__}: {str(err)[:120]})") from None
 
 
 def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:

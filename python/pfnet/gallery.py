@@ -45,7 +45,7 @@ def render_completions(
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.evaluation import find_prediction_files
     from pfnet.io import read_point_cloud
-    from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
+    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
 
     clouds = load_split(data_dir, split)
     index = {
@@ -68,3 +68,24 @@ def render_completions(
         panels.append(("ground truth", [(points[i], GROUND_TRUTH_COLOR)]))
         rows.append((key, panels))
     return render_panels(out, rows, views=2 if len(columns) == 1 else 1, title=title)
+
+
+def render_prediction_gallery(
+    out: Path, pred_dir: Path, data_dir: Path, *, split: str, missing_ratio: float, count: int
+) -> Path:
+    """Render ``count`` predicted samples (spread over the categories) as partial/pred/gt rows."""
+    from pfnet.data import load_split
+
+    clouds = load_split(data_dir, split)
+    categories = [str(c) for c in clouds.category]
+    keys = [(categories[i], str(clouds.name[i])) for i in pick_gallery(categories, count)]
+    title = f"{Path(pred_dir).name}: {split}, {missing_ratio:.0%} missing"
+    return render_completions(
+        out,
+        data_dir,
+        {"completion": Path(pred_dir)},
+        split=split,
+        missing_ratio=missing_ratio,
+        keys=keys,
+        title=title,
+    )

@@ -43,7 +43,7 @@ def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: st
     from tqdm import tqdm
 
     if batch_size < 1:
-        raise ConfigError(f"--batch-size must be at least 1, got {batch_size}")
+        raise ConfigError(f"batch size must be at least 1, got {batch_size}")
     outputs = []
     starts = range(0, len(partial), batch_size)
     with torch.inference_mode():
@@ -90,14 +90,16 @@ def predict_split(
 
     device = inference_device(device)
     checkpoint = resolve_checkpoint(checkpoint)
-    refuse_overlap(out_dir, [data_dir, checkpoint])
+    refuse_overlap(out_dir, [data_dir, checkpoint], flag="prediction folder")
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
-        raise ConfigError(f"--out {out_dir} is a file; name a folder for the predictions")
+        raise ConfigError(
+            f"prediction folder {out_dir} is a file; name a folder for the predictions"
+        )
     model, config = load_checkpoint(checkpoint, device=device)
     trained_ratio = config_value(config, "missing_ratio")
     ratio = float(trained_ratio if missing_ratio is None else missing_ratio)
     if not 0.0 < ratio < 1.0:
-        raise ConfigError(f"--missing-ratio must be in (0, 1), got {ratio}")
+        raise ConfigError(f"missing ratio must be in (0, 1), got {ratio}")
     clouds = load_split(data_dir, split)
     if len(clouds) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")
@@ -112,11 +114,13 @@ def predict_split(
     for category in categories:
         folder = out / category
         # a folder that is a symbolic link (or resolves elsewhere) would take the
-        # predictions outside --out: into the data set, over a checkpoint
+        # predictions outside out_dir: into the data set, over a checkpoint
         if folder.is_symlink() or (
             folder.exists() and not folder.resolve().is_relative_to(out.resolve())
         ):
-            raise DataError(f"{folder} is a link out of --out {out}; remove it first")
+            raise DataError(
+                f"{folder} is a link out of the prediction folder {out}; remove it first"
+            )
     out.mkdir(parents=True, exist_ok=True)
     for category in categories:
         (out / category).mkdir(exist_ok=True)

@@ -242,7 +242,7 @@ def test_predict_never_follows_a_linked_category_folder_out_of_its_output(
     before = _tree(victim)
     args = ["predict", "--checkpoint", str(checkpoint), "--data", str(tiny_dataset)]
     assert main([*args, "--out", str(out), "--device", "cpu"]) == 1
-    assert "is a link out of --out" in capsys.readouterr().err
+    assert "is a link out of the prediction folder" in capsys.readouterr().err
     assert _tree(victim) == before and sorted(p.name for p in out.iterdir()) == [category]
 
 
@@ -339,7 +339,7 @@ def _npy_bytes(array: np.ndarray) -> bytes:
 
 def test_render_draws_huge_clouds_thinned_and_ascii_ply_lines_are_bounded(tmp_path: Path) -> None:
     from pfnet.errors import DataError
-    from pfnet.render import MAX_DRAWN, RenderSample, render_gallery
+    from pfnet.rendering import MAX_DRAWN, RenderSample, render_gallery
 
     big = np.random.default_rng(0).normal(size=(MAX_DRAWN * 20, 3)).astype(np.float32)
     path = render_gallery(tmp_path / "big.png", [RenderSample("big", big)], views=1)
@@ -477,7 +477,7 @@ def test_manifests_with_odd_split_records_and_forged_member_dtypes(
 def test_a_missing_torch_is_one_line_and_other_missing_modules_stay_visible(
     monkeypatch: pytest.MonkeyPatch, capsys
 ) -> None:
-    import pfnet.list_models
+    import pfnet.commands.models
 
     def needs(name):
         def run(_args):
@@ -485,13 +485,13 @@ def test_a_missing_torch_is_one_line_and_other_missing_modules_stay_visible(
 
         return run
 
-    monkeypatch.setattr(pfnet.list_models, "run", needs("torch"))
+    monkeypatch.setattr(pfnet.commands.models, "run", needs("torch"))
     assert main(["models"]) == 1
     assert (
         "needs PyTorch, which is not installed: pip install 'pfnet[train]'"
         in capsys.readouterr().err
     )
-    monkeypatch.setattr(pfnet.list_models, "run", needs("pfnet.nothing"))
+    monkeypatch.setattr(pfnet.commands.models, "run", needs("pfnet.nothing"))
     with pytest.raises(ModuleNotFoundError):
         main(["models"])
 

@@ -88,7 +88,7 @@ class PrepareReport:
             lines.append(f"{category:<{width}} " + " ".join(f"{n:>6}" for n in (*row, sum(row))))
         for reason, count in sorted(self.dropped.items()):
             if count:
-                hint = " (keep them with --categories all)" if reason == "unmatched" else ""
+                hint = " (categories 'all' keeps them)" if reason == "unmatched" else ""
                 lines.append(f"dropped {count} shapes: {reason.replace('_', ' ')}{hint}")
         if self.skipped:
             lines.append(f"skipped {len(self.skipped)} files:")
@@ -126,7 +126,7 @@ def detect_format(source: str | os.PathLike[str] | None) -> str:
     raise DataError(
         f"{path}: cannot detect the format (expected *.sh3f catalogues, a ShapeNet-Part tree "
         f"with {shapenet_part.CATEGORY_FILE}, or <category>/<mesh file> folders); "
-        "pass --format"
+        "give the format (meshes, shapenet-part or sweethome3d)"
     )
 
 
@@ -360,7 +360,7 @@ def prepare_dataset(
         )
     pool = 0 if pool is None else int(pool)
     if source is not None and str(source) != "procedural":
-        refuse_overlap(out, [source])
+        refuse_overlap(out, [source], flag="data set folder")
     out_path = check_output(out, overwrite)
     fmt = detect_format(source) if format == "auto" else format
     scan = _scan(fmt, source, count, strict)

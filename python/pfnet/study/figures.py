@@ -80,7 +80,7 @@ def render_comparison(
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.gallery import pick_gallery
     from pfnet.io import read_point_cloud
-    from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
+    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
 
     # One seed's predictions (the first): an average of seeds is no one model's output.
     seed = results["seeds"][0]

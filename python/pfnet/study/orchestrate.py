@@ -48,7 +48,7 @@ def reproduce(
     data_dir = data if data is not None else out / "data"
     if not (data_dir / "manifest.json").is_file():
         if data is not None:
-            raise DataError(f"--data {data} is not a prepared data set (no manifest.json)")
+            raise DataError(f"{data} is not a prepared data set (no manifest.json)")
         log(f"preparing the data set from {source or 'procedural shapes'} into {data_dir}")
         report = prepare_dataset(source, data_dir, seed=data_seed, progress=None)
         log(report.summary())
@@ -127,3 +127,14 @@ def write_results(out: Path, results: dict[str, Any], data_dir: Path, gallery_co
     render_comparison(out / "gallery.png", results, out / "runs", data_dir, gallery_count)
     with atomic_path(out / "results.md") as tmp:
         tmp.write_text(render_report(results))
+
+
+def rewrite_report(out: Path, results: dict[str, Any], data_dir: Path, gallery_count: int) -> None:
+    """Rebuild ``out``'s report from ``results``: the figures too if the runs and data are there."""
+    from pfnet.io import atomic_path
+
+    if (out / "runs").is_dir() and (data_dir / "manifest.json").is_file():
+        write_results(out, results, data_dir, gallery_count)
+    else:
+        with atomic_path(out / "results.md") as tmp:
+            tmp.write_text(render_report(results))

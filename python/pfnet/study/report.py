@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -236,6 +237,43 @@ def render_report(results: dict[str, Any], assets: str = "") -> str:
     return "\n".join(lines)
 
 
+def read_results(path: Path) -> dict[str, Any]:
+    """A study's ``results.json``, checked to hold a list of runs.
+
+    Raises:
+        DataError: If it cannot be read or is not a study record.
+    """
+    try:
+        results = json.loads(path.read_text())
+        if not isinstance(results, dict) or not isinstance(results.get("runs"), list):
+            raise ValueError("not a study record (no list of runs)")
+    except (OSError, ValueError, RecursionError) as err:
+        raise DataError(f"cannot read {path}: {str(err)[:200]}") from None
+    return results
+
+
+def checked_report(results: dict[str, Any], source: Path) -> str:
+    """:func:`render_report` of a record read from ``source``, which may be edited or forged.
+
+    Raises:
+        DataError: If the record lacks what the report needs, or holds the wrong types.
+    """
+    try:
+        return render_report(results)
+    except (KeyError, IndexError, TypeError, ValueError, OverflowError) as err:
+        raise DataError(
+            f"{source} is not a study record this pfnet can report "
+            f"({type(err).__name__}: {str(err)[:120]})"
+        ) from None
+
+
+def publish_readme(readme: Path, results: dict[str, Any], published: Path) -> None:
+    """Replace ``readme``'s results section with the report of ``results``, its pictures
+    linked to the folder ``published`` (relative to the README)."""
+    assets = os.path.relpath(published, readme.parent).replace(os.sep, "/") + "/"
+    update_readme(readme, render_report(results, assets))
+
+
 def update_readme(readme: Path, section: str) -> None:
     """Replace the text between ``README_BEGIN`` and ``README_END`` in ``readme``."""
     from pfnet.io import atomic_path
@@ -243,11 +281,11 @@ def update_readme(readme: Path, section: str) -> None:
     try:
         text = readme.read_text(encoding="utf-8")
     except OSError as err:
-        raise ConfigError(f"--readme {readme}: cannot read it: {err.strerror}") from None
+        raise ConfigError(f"README {readme}: cannot read it: {err.strerror}") from None
     start, end = text.find(README_BEGIN), text.find(README_END)
     if start < 0 or end < start:
         raise ConfigError(
-            f"--readme {readme}: no results section; add the lines\n{README_BEGIN}\n{README_END}"
+            f"README {readme}: no results section; add the lines\n{README_BEGIN}\n{README_END}"
         )
     head = text[: start + len(README_BEGIN)]
     with atomic_path(readme) as tmp:

@@ -168,7 +168,7 @@ def train_run(
         if {k: v for k, v in stored.items() if k not in free} != wanted:
             raise ConfigError(
                 f"{run_dir} holds a run with another configuration; delete it or choose "
-                "another --out"
+                "another results folder"
             )
         if done >= config.epochs and not _interrupted(run_dir):
             log(f"{run.name}: already trained ({done} epochs)")

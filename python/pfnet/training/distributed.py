@@ -67,7 +67,7 @@ def resolve_device(
         if count and local_rank == 0:
             print(
                 f"pfnet: {local_world_size} processes on this machine but {count} GPU(s) "
-                f"visible: --device auto trains on the CPU (start at most {count} processes "
+                f"visible: device auto trains on the CPU (start at most {count} processes "
                 "per machine to use the GPUs)",
                 file=sys.stderr,
             )
@@ -88,7 +88,7 @@ def resolve_device(
         )
         raise ConfigError(
             f"{who} needs GPU {index} but {count} GPU(s) are visible; "
-            "start fewer processes per machine, or use --device cpu"
+            "start fewer processes per machine, or train on the CPU"
         )
     return torch.device(f"cuda:{index}")
 

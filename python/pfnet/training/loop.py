@@ -90,7 +90,8 @@ def train(
         DataError: Missing or unusable dataset or checkpoint.
     """
     init = [config.init_from] if config.init_from and Path(config.init_from).exists() else []
-    refuse_overlap(out_dir, [data_dir, *([val_data] if val_data else []), *init])
+    inputs = [data_dir, *([val_data] if val_data else []), *init]
+    refuse_overlap(out_dir, inputs, flag="run folder")
     context = distributed.setup(device)
     try:
         val_dir = None if val_data is None else Path(val_data)
@@ -122,7 +123,7 @@ class Trainer:
         self.device = context.device
         self.out_dir = out_dir
         if out_dir.exists() and not out_dir.is_dir():
-            raise ConfigError(f"--out {out_dir} exists and is not a folder")
+            raise ConfigError(f"run folder {out_dir} exists and is not a folder")
         state = None
         self.data_identity = data_identity(data_dir)
         if resume:
@@ -134,7 +135,7 @@ class Trainer:
             if comparable and stored.get("fingerprint") != self.data_identity["fingerprint"]:
                 raise ConfigError(
                     f"{out_dir / LAST} trained on another data set ({stored.get('path')}); "
-                    f"--data {data_dir} differs from it: resume with the same data"
+                    f"the data set {data_dir} differs from it: resume with the same data"
                 )
             if state["batches_done"] and state["world_size"] != context.world_size:
                 raise ConfigError(
@@ -143,8 +144,8 @@ class Trainer:
                 )
         elif (out_dir / LAST).exists():
             raise ConfigError(
-                f"{out_dir} already holds a run ({LAST}); pass --resume to continue it "
-                "or choose another --out"
+                f"{out_dir} already holds a run ({LAST}); resume it to continue, "
+                "or choose another run folder"
             )
 
         self.train_set = CompletionDataset(
@@ -370,12 +371,6 @@ class Trainer:
                     write_log(self.out_dir / LOG, self.history)
                     plot_curves(self.out_dir / CURVES, self.history)
                 writer.flush()
-                if interrupted and ctx.is_main:
-                    print(
-                        f"pfnet train: saved {self.out_dir / LAST} at epoch {self.epoch + 1}, "
-                        f"batch {self.batches_done}; continue with --resume",
-                        file=sys.stderr,
-                    )
             finally:
                 self._close_loader()
                 self._writer = None

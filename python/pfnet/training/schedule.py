@@ -89,5 +89,5 @@ def schedule_note(config: TrainConfig, steps_per_epoch: int) -> str | None:
     return (
         f"only {full} of the run's {total} optimiser steps are at the full learning rate "
         f"({how}); a flat curve later means the learning rate is gone, not convergence. "
-        "Size small data sets in steps (--steps) to give them the updates they need"
+        "Size small data sets in optimiser steps to give them the updates they need"
     )

@@ -98,7 +98,7 @@ def pick_source(source: Path | None, *, procedural: bool, default: Path, hint: s
         return None
     if source is not None:
         if not Path(source).exists():
-            raise ConfigError(f"--source {source} does not exist")
+            raise ConfigError(f"model source {source} does not exist")
         return Path(source)
     if default.is_dir() and any(default.glob("*.sh3f")):
         return default

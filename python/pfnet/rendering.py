@@ -1,4 +1,4 @@
-"""``pfnet render``: draw point clouds the way the paper's figures do.
+"""Drawing point clouds the way the paper's figures do (the work behind ``pfnet render``).
 
 The paper's completion figures show, per shape, the partial input in grey, the input merged
 with the predicted missing region in yellow, and the ground truth in blue. A gallery here has
@@ -6,14 +6,13 @@ one row per sample and, for each of several viewing angles, up to three panels: 
 (partial, grey), *completion* (partial grey + prediction yellow) and *ground truth* (blue).
 Panels whose clouds are not given are left out.
 
-:func:`render_gallery` is the library entry point, also used by ``pfnet predict``,
-``pfnet evaluate`` and ``pfnet demo``. The data sets are y-up (ShapeNet, SweetHome3D), so the
-y axis is drawn vertical.
+:func:`render_gallery` draws samples of up to three clouds; :func:`render_panels`, the layout
+of every gallery, is also behind :mod:`pfnet.gallery` and the study's figures. The data sets
+are y-up (ShapeNet, SweetHome3D), so the y axis is drawn vertical.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import textwrap
@@ -24,16 +23,12 @@ import numpy as np
 
 from pfnet.errors import ConfigError, DataError
 
-HELP = "Draw point clouds (partial grey, prediction yellow, ground truth blue) into a PNG."
-
 PARTIAL_COLOR = "#9a9a9a"
 """Grey: the incomplete input (paper, Figs. 7-9)."""
 PREDICTION_COLOR = "#f2c200"
 """Yellow: the predicted missing region."""
 GROUND_TRUTH_COLOR = "#2f6fd0"
 """Blue: the complete ground-truth cloud."""
-
-ROLES = ("partial", "prediction", "ground-truth")
 
 
 @dataclass
@@ -84,12 +79,12 @@ def render_gallery(
     other arguments, the return value and the errors are those of :func:`render_panels`.
     """
     if not samples:
-        raise ConfigError("render: nothing to draw (no samples)")
+        raise ConfigError("nothing to draw (no samples)")
     rows = []
     for sample in samples:
         panels = _panels(sample)
         if not panels:
-            raise ConfigError(f"render: sample {sample.label!r} has no point cloud")
+            raise ConfigError(f"sample {sample.label!r} has no point cloud")
         rows.append((sample.label, panels))
     return render_panels(
         out,
@@ -128,6 +123,8 @@ MAX_VIEWS = 12
 MAX_ROWS = 200
 # Points drawn per cloud and panel: more are not visible, only slow (5 M took minutes).
 MAX_DRAWN = 50_000
+# Marker area in points squared: larger markers cover the panel.
+MAX_POINT_SIZE = 1000.0
 
 
 def render_panels(
@@ -156,7 +153,8 @@ def render_panels(
         The path written.
 
     Raises:
-        ConfigError: If there are no rows, a row has no panel, or ``views < 1``.
+        ConfigError: If there are no rows or too many, a row has no panel, ``out`` is not a
+            ``.png`` file, or ``views`` or ``point_size`` is out of range.
         DataError: If a cloud is not a finite ``(N, 3)`` array.
     """
     import matplotlib
@@ -167,27 +165,27 @@ def render_panels(
     from pfnet.io import atomic_path
 
     if not rows:
-        raise ConfigError("render: nothing to draw (no samples)")
+        raise ConfigError("nothing to draw (no samples)")
     if len(rows) > MAX_ROWS:
         raise ConfigError(
-            f"render: {len(rows)} rows is more than the {MAX_ROWS} one picture can show; "
+            f"{len(rows)} rows is more than the {MAX_ROWS} one picture can show; "
             "render them in several pictures"
         )
     if Path(out).suffix.lower() != ".png":
-        raise ConfigError(f"render: the picture must be a .png file, got {out}")
+        raise ConfigError(f"the picture must be a .png file, got {out}")
     if not 1 <= views <= MAX_VIEWS:
-        raise ConfigError(f"render: --views must be in [1, {MAX_VIEWS}], got {views}")
-    if not (math.isfinite(point_size) and 0 < point_size <= 1000):
-        raise ConfigError(f"render: --point-size must be in (0, 1000], got {point_size}")
+        raise ConfigError(f"views must be in [1, {MAX_VIEWS}], got {views}")
+    if not (math.isfinite(point_size) and 0 < point_size <= MAX_POINT_SIZE):
+        raise ConfigError(f"point size must be in (0, {MAX_POINT_SIZE:g}], got {point_size}")
     for label, panels in rows:
         if not panels:
-            raise ConfigError(f"render: sample {label!r} has no point cloud")
+            raise ConfigError(f"sample {label!r} has no point cloud")
         for _, layers in panels:
             for points, _color in layers:
                 pts = np.asarray(points)
                 if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
                     raise DataError(
-                        f"render: sample {label!r} has a cloud of shape {pts.shape} "
+                        f"sample {label!r} has a cloud of shape {pts.shape} "
                         "that is not a finite (N, 3) array"
                     )
     n_cols = max(len(panels) for _, panels in rows) * views
@@ -253,61 +251,3 @@ def render_panels(
     with atomic_path(out_path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)
     return Path(out)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``pfnet render``."""
-    parser.add_argument(
-        "files",
-        nargs="*",
-        metavar="FILE",
-        help="point cloud files (.npy .ply .xyz .pts .txt .pcd), one row each, coloured by --role",
-    )
-    parser.add_argument(
-        "--sample",
-        nargs=3,
-        action="append",
-        default=[],
-        metavar=("PARTIAL", "PRED", "GT"),
-        help="one row from a partial input, a prediction and a ground truth file "
-        "('-' leaves one out); repeat for more rows",
-    )
-    parser.add_argument("--out", required=True, type=Path, help="PNG file to write")
-    parser.add_argument(
-        "--role",
-        choices=ROLES,
-        default="ground-truth",
-        help="colour of the FILE rows: partial grey, prediction yellow, ground-truth blue "
-        "(default: %(default)s)",
-    )
-    parser.add_argument("--views", type=int, default=2, help="view angles (default: 2)")
-    parser.add_argument("--title", default=None, help="figure title")
-    parser.add_argument("--point-size", type=float, default=2.0, help="marker size (default: 2)")
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run ``pfnet render``."""
-    from pfnet.io import read_point_cloud, refuse_input_overwrite
-
-    if not args.files and not args.sample:
-        raise ConfigError("render: give at least one FILE or --sample PARTIAL PRED GT")
-    if args.out.suffix.lower() != ".png":
-        raise ConfigError(f"render: --out must be a .png file, got {args.out}")
-    inputs = [*args.files, *(t for triple in args.sample for t in triple if t != "-")]
-    refuse_input_overwrite([args.out], inputs)
-    samples = []
-    field = {"partial": "partial", "prediction": "prediction", "ground-truth": "ground_truth"}
-    for name in args.files:
-        samples.append(RenderSample(label=Path(name).name))
-        setattr(samples[-1], field[args.role], read_point_cloud(name))
-    for triple in args.sample:
-        if all(t == "-" for t in triple):
-            raise ConfigError("render: --sample needs at least one file that is not '-'")
-        clouds = [None if t == "-" else read_point_cloud(t) for t in triple]
-        label = Path(next(t for t in triple if t != "-")).stem
-        samples.append(RenderSample(label, *clouds))
-    path = render_gallery(
-        args.out, samples, views=args.views, title=args.title, point_size=args.point_size
-    )
-    print(f"wrote {path} ({len(samples)} row(s))")
-    return 0

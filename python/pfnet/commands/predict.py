@@ -51,6 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet predict``."""
+    if args.batch_size < 1:
+        raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
+    if args.missing_ratio is not None and not 0.0 < args.missing_ratio < 1.0:
+        raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
+    if args.out.exists() and not args.out.is_dir():
+        raise ConfigError(f"--out {args.out} is a file; name a folder for the predictions")
     if args.gallery is not None and args.gallery_count < 1:
         raise ConfigError(f"--gallery-count must be at least 1, got {args.gallery_count}")
     if args.gallery is not None:  # before predicting: never over the data or the checkpoint
@@ -79,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
         f"{args.out}/<category>/<name>.npy ({info['split']} split, {ratio:.0%} missing)"
     )
     if args.gallery is not None:
+        from pfnet.gallery import render_prediction_gallery
+
         path = render_prediction_gallery(
             args.gallery,
             args.out,
@@ -90,25 +98,3 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     print(f"score it: pfnet evaluate {args.out} --data {args.data} --missing-ratio {ratio:g}")
     return 0
-
-
-def render_prediction_gallery(
-    out: Path, pred_dir: Path, data_dir: Path, *, split: str, missing_ratio: float, count: int
-) -> Path:
-    """Render ``count`` predicted samples (spread over the categories) as partial/pred/gt rows."""
-    from pfnet.data import load_split
-    from pfnet.gallery import pick_gallery, render_completions
-
-    clouds = load_split(data_dir, split)
-    categories = [str(c) for c in clouds.category]
-    keys = [(categories[i], str(clouds.name[i])) for i in pick_gallery(categories, count)]
-    title = f"{Path(pred_dir).name}: {split}, {missing_ratio:.0%} missing"
-    return render_completions(
-        out,
-        data_dir,
-        {"completion": Path(pred_dir)},
-        split=split,
-        missing_ratio=missing_ratio,
-        keys=keys,
-        title=title,
-    )

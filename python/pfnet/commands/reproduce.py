@@ -30,14 +30,12 @@ predictions) into ``DIR``; ``--readme README.md`` replaces the README's results 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 from pathlib import Path
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.study.orchestrate import reproduce, write_results
-from pfnet.study.report import publish, render_report, update_readme
+from pfnet.study.orchestrate import reproduce, rewrite_report
+from pfnet.study.report import checked_report, publish, publish_readme, read_results
 from pfnet.study.runs import STUDY_MODELS, STUDY_RATIOS, STUDY_SEEDS
 
 HELP = "Re-run the paper's comparisons: five models, three missing ratios, tables and figures."
@@ -113,14 +111,19 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--ratios must be in (0, 1); got {', '.join(map(str, bad))}")
     if args.readme is not None and not args.readme.is_file():
         raise ConfigError(f"--readme {args.readme} does not exist")
+    if not args.report_only:  # the options of a study to run, not of a report to rebuild
+        if args.data is None and args.source is not None and not args.source.exists():
+            raise ConfigError(f"--source {args.source} does not exist")
+        if args.data is not None and not (args.data / "manifest.json").is_file():
+            raise DataError(f"--data {args.data} is not a prepared data set (no manifest.json)")
     if args.report_only:
-        path = out / "results.json"
-        try:
-            results = json.loads(path.read_text())
-            if not isinstance(results, dict) or not isinstance(results.get("runs"), list):
-                raise ValueError("not a study record (no list of runs)")
-        except (OSError, ValueError, RecursionError) as err:
-            raise DataError(f"--report-only: cannot read {path}: {str(err)[:200]}") from None
+        try:  # a results.json edited by hand (or forged) must not end in a traceback
+            results = read_results(out / "results.json")
+            checked_report(results, out / "results.json")
+        except DataError as err:
+            raise DataError(f"--report-only: {err}") from None
+        data_dir = args.data if args.data is not None else out / "data"
+        rewrite_report(out, results, data_dir, args.gallery_count)
     else:
         from pfnet.data import SWEETHOME3D_PATH
         from pfnet.data.sources import pick_source
@@ -149,29 +152,12 @@ def run(args: argparse.Namespace) -> int:
             overrides={"epochs": args.epochs, "width": args.width, "batch_size": args.batch_size},
             gallery_count=args.gallery_count,
         )
-    from pfnet.io import atomic_path
-
-    if args.report_only:
-        data_dir = args.data if args.data is not None else out / "data"
-        try:  # a results.json edited by hand (or forged) must not end in a traceback
-            report = render_report(results)
-        except (KeyError, IndexError, TypeError, ValueError, OverflowError) as err:
-            raise DataError(
-                f"--report-only: {out / 'results.json'} is not a study record this pfnet can "
-                f"report ({type(err).__name__}: {str(err)[:120]})"
-            ) from None
-        if (out / "runs").is_dir() and (data_dir / "manifest.json").is_file():
-            write_results(out, results, data_dir, args.gallery_count)
-        else:
-            with atomic_path(out / "results.md") as tmp:
-                tmp.write_text(report)
     published = out
     if args.publish is not None:
         publish(out, args.publish)
         published = args.publish
     if args.readme is not None:
-        assets = os.path.relpath(published, args.readme.parent).replace(os.sep, "/") + "/"
-        update_readme(args.readme, render_report(results, assets))
+        publish_readme(args.readme, results, published)
         print(f"updated the results section of {args.readme}")
     print(f"results in {out}; report {published / 'results.md'}")
     sys.stdout.flush()

@@ -131,6 +131,13 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
 def run(args: argparse.Namespace) -> int:
     """Train; print a one-line summary. Exit code 130 after Ctrl-C (the run is saved)."""
     config = build_config(args)
+    if args.out.exists() and not args.out.is_dir():
+        raise ConfigError(f"--out {args.out} exists and is not a folder")
+    if not args.resume and (args.out / "last.pt").exists():
+        raise ConfigError(
+            f"{args.out} already holds a run (last.pt); pass --resume to continue it "
+            "or choose another --out"
+        )
     from pfnet.training.loop import train
 
     summary = train(
@@ -146,6 +153,12 @@ def run(args: argparse.Namespace) -> int:
 
         if os.environ.get("RANK", "0") != "0":
             return 130 if summary["interrupted"] else 0
+    if summary["interrupted"]:
+        print(
+            f"pfnet train: saved {summary['last']} at epoch {summary['epochs'] + 1}, "
+            f"batch {summary['batches_done']}; continue with --resume",
+            file=sys.stderr,
+        )
     best = summary["best_val_cd_l2"]
     best_text = f"{best:.4g}" if best is not None else "n/a"
     print(

@@ -1,4 +1,5 @@
-"""``pfnet complete``: complete your own partial point clouds with a trained model.
+"""Completing your own partial point clouds with a trained model (the work behind
+``pfnet complete``).
 
 For each input file (``.ply .xyz .pts .txt .npy .pcd``, see :mod:`pfnet.io`):
 
@@ -20,18 +21,14 @@ float32 coordinates :func:`pfnet.io.read_point_cloud` returned.
 
 from __future__ import annotations
 
-import argparse
-import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError, DataError
-
-HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
 
 PARTIAL_RGB = (154, 154, 154)
 PREDICTION_RGB = (242, 194, 0)
@@ -133,32 +130,17 @@ def write_completion(out_dir: Path, source: Path, cloud: np.ndarray, missing: np
     )
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``pfnet complete``."""
-    parser.add_argument(
-        "inputs", nargs="+", type=Path, metavar="INPUT", help="partial clouds to complete"
-    )
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="checkpoint (best.pt of pfnet train), model file or shipped model's name "
-        "(default: the shipped default model; see pfnet models)",
-    )
-    parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
-    parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
-    parser.add_argument("--device", default="auto", help=DEVICE_HELP)
+def check_outputs(inputs: list[Path], out_dir: Path) -> list[Path]:
+    """The inputs to complete (each once), after checking that their outputs are safe to write.
 
-
-def run(args: argparse.Namespace) -> int:
-    """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
-    from pfnet.checkpoint import load_checkpoint
-    from pfnet.devices import inference_device
+    Raises:
+        ConfigError: Two inputs would write the same files, ``out_dir`` is a file, or an
+            output would replace an input.
+    """
     from pfnet.io import refuse_input_overwrite
 
-    if args.batch_size < 1:
-        raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
     stems: dict[str, Path] = {}
-    for path in args.inputs:
+    for path in inputs:
         # casefold: Scan.npy and scan.npy would write one file on macOS and Windows
         stem = path.stem.casefold()
         if stem in stems and stems[stem] != path:
@@ -167,60 +149,75 @@ def run(args: argparse.Namespace) -> int:
                 f"{path.stem}_completed.ply; rename one or complete them separately"
             )
         stems[stem] = path
-    if args.out.exists() and not args.out.is_dir():
-        raise ConfigError(f"--out {args.out} is a file; name a folder for the outputs")
-    inputs = list(dict.fromkeys(args.inputs))
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"output folder {out_dir} is a file; name a folder for the outputs")
+    unique = list(dict.fromkeys(inputs))
     # `complete a.ply a_missing.ply --out .` would replace the user's a_missing.ply.
     refuse_input_overwrite(
-        [output for path in inputs for output in output_paths(args.out, path)], inputs
+        [output for path in unique for output in output_paths(out_dir, path)], unique
     )
-    device = inference_device(args.device)
-    model, _ = load_checkpoint(args.checkpoint, device=device)
-    created = not args.out.exists()
-    args.out.mkdir(parents=True, exist_ok=True)
+    return unique
+
+
+def complete_files(
+    model: Any,
+    inputs: list[Path],
+    out_dir: Path,
+    *,
+    batch_size: int = 32,
+    device: str = "cpu",
+    on_skip: Callable[[DataError], None] | None = None,
+) -> tuple[int, list[str]]:
+    """Complete ``inputs`` batch by batch into ``out_dir`` (created if needed).
+
+    A file that cannot be read, or whose points all coincide, is skipped (``on_skip`` is told
+    at once) and the rest are completed. An interrupted first batch leaves no empty folder.
+
+    Returns:
+        The number of files completed and the messages of the files skipped.
+
+    Raises:
+        ConfigError: If ``batch_size < 1``.
+    """
+    if batch_size < 1:
+        raise ConfigError(f"batch size must be at least 1, got {batch_size}")
+    created = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
     try:
-        done, failed = _complete_all(args, model, inputs, device)
+        return _complete_batches(model, inputs, out_dir, batch_size, device, on_skip)
     except KeyboardInterrupt:
-        if created and not any(args.out.iterdir()):
-            args.out.rmdir()  # an interrupted first batch leaves no empty folder behind
+        if created and not any(out_dir.iterdir()):
+            out_dir.rmdir()
         raise
-    print(
-        f"completed {done} of {len(inputs)} file(s) into {args.out} "
-        f"(<stem>_missing.ply and <stem>_completed.ply)"
-    )
-    if failed:
-        print(f"pfnet complete: {len(failed)} file(s) could not be read", file=sys.stderr)
-        return 2
-    return 0
 
 
-def _complete_all(args: argparse.Namespace, model, inputs: list[Path], device: str):
-    """Complete ``inputs`` batch by batch; return (files done, messages of files skipped)."""
+def _complete_batches(model, inputs, out_dir, batch_size, device, on_skip):
+    """:func:`complete_files` without the folder's creation and clean-up."""
     from tqdm import tqdm
 
     from pfnet.io import read_point_cloud
 
     failed: list[str] = []
     done = 0
-    chunk = max(args.batch_size, 1)
     progress = tqdm(total=len(inputs), desc="complete", unit="file", disable=None)
-    for start in range(0, len(inputs), chunk):
+    for start in range(0, len(inputs), batch_size):
         paths, clouds = [], []
-        for path in inputs[start : start + chunk]:
+        for path in inputs[start : start + batch_size]:
             try:
                 cloud = read_point_cloud(path)
                 normalisation(cloud, str(path))  # reject degenerate clouds before batching
             except DataError as err:
                 failed.append(str(err))
-                print(f"skipped: {err}", file=sys.stderr)
+                if on_skip is not None:
+                    on_skip(err)
                 progress.update(1)
                 continue
             paths.append(path)
             clouds.append(cloud)
         if clouds:
-            predicted = complete_clouds(model, clouds, batch_size=chunk, device=device)
+            predicted = complete_clouds(model, clouds, batch_size=batch_size, device=device)
             for path, cloud, missing in zip(paths, clouds, predicted, strict=True):
-                write_completion(args.out, path, cloud, missing)
+                write_completion(out_dir, path, cloud, missing)
                 done += 1
                 progress.update(1)
     progress.close()

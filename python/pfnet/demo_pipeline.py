@@ -1,9 +1,9 @@
-"""``pfnet demo``: the whole pipeline on real data in a few minutes on a CPU.
+"""The demo: the whole pipeline on real data in a few minutes on a CPU (``pfnet demo``).
 
 1. Build a data set from Debian's SweetHome3D furniture (``sweethome3d-furniture``, real
    CC-BY/CC0 models); if it is not installed, say how to install it and use procedural
    shapes instead.
-2. Train the ``small`` preset of PF-Net for a time budget (``--minutes``): two epochs are
+2. Train the ``small`` preset of PF-Net for a time budget (``minutes``): two epochs are
    trained and the second one timed (the first pays for start-up), then the run is resumed
    for as many epochs as fit in the rest of the budget.
 3. Predict the test split with the deterministic test protocol, evaluate it (Chamfer ×1000,
@@ -12,12 +12,11 @@
 4. Render a gallery PNG: each test sample's input, the short run's completion, the shipped
    model's completion and the ground truth.
 
-Everything goes under ``--out``; running the demo again reuses the data set if it is there.
+Everything goes under the output folder; running the demo again reuses the data set if it is there.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from pathlib import Path
@@ -26,58 +25,16 @@ from pfnet.data import SWEETHOME3D_PATH
 from pfnet.data.sources import pick_source
 from pfnet.errors import ConfigError
 
-HELP = "Run the whole pipeline on real furniture models: prepare, train, predict, evaluate."
-
 SWEETHOME3D_FURNITURE: Path = SWEETHOME3D_PATH
 INSTALL_HINT = "sudo apt-get install sweethome3d-furniture"
+MAX_MINUTES = 7 * 24 * 60
+"""The longest time budget: a week."""
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``pfnet demo``."""
-    parser.add_argument(
-        "--out", type=Path, default=Path("pfnet-demo"), help="output folder (default: pfnet-demo)"
-    )
-    parser.add_argument(
-        "--minutes",
-        type=float,
-        default=5.0,
-        help="training time budget in minutes (default: 5)",
-    )
-    parser.add_argument(
-        "--epochs",
-        type=int,
-        default=None,
-        help="train exactly this many epochs instead of filling --minutes",
-    )
-    parser.add_argument(
-        "--source",
-        type=Path,
-        default=None,
-        help=f"models to build the data set from (default: {SWEETHOME3D_FURNITURE})",
-    )
-    parser.add_argument(
-        "--procedural", action="store_true", help="use procedural shapes, not real models"
-    )
-    parser.add_argument(
-        "--points", type=int, default=2048, help="points per shape (default: 2048, as the paper)"
-    )
-    parser.add_argument(
-        "--count",
-        type=int,
-        default=None,
-        help="shapes per category of procedural data (default: 100)",
-    )
-    parser.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (default: cpu)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of data and training")
-    parser.add_argument(
-        "--gallery-count", type=int, default=6, help="samples in the gallery (default: 6)"
-    )
-
-
-def choose_source(args: argparse.Namespace) -> Path | None:
+def choose_source(source: Path | None, *, procedural: bool = False) -> Path | None:
     """The model folder to use, or None for procedural shapes (with a hint printed)."""
     return pick_source(
-        args.source, procedural=args.procedural, default=SWEETHOME3D_FURNITURE, hint=INSTALL_HINT
+        source, procedural=procedural, default=SWEETHOME3D_FURNITURE, hint=INSTALL_HINT
     )
 
 
@@ -141,12 +98,42 @@ def shipped_comparison(data_dir: Path, points: int) -> Path | None:
     return path
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``pfnet demo``."""
-    if not (math.isfinite(args.minutes) and 0 < args.minutes <= 7 * 24 * 60):
-        raise ConfigError(f"--minutes must be positive and at most a week, got {args.minutes}")
-    if args.epochs is not None and args.epochs < 1:
-        raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
+def run_demo(
+    out: Path,
+    *,
+    minutes: float = 5.0,
+    epochs: int | None = None,
+    source: Path | None = None,
+    procedural: bool = False,
+    points: int = 2048,
+    count: int | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    gallery_count: int = 6,
+) -> None:
+    """Run the demo into ``out``, printing each step (see the module docstring).
+
+    Args:
+        out: Output folder; a data set already in ``out/data`` is reused.
+        minutes: Training time budget, filled with as many epochs as fit.
+        epochs: Train exactly this many epochs instead of filling ``minutes``.
+        source: Models to build the data set from (default: the SweetHome3D furniture,
+            else procedural shapes).
+        procedural: Use procedural shapes, not real models.
+        points: Points per shape.
+        count: Shapes per category of procedural data.
+        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
+        seed: Seed of data and training.
+        gallery_count: Samples in the gallery.
+
+    Raises:
+        ConfigError: ``minutes`` or ``epochs`` out of range, a bad device or source, or an
+            output folder that is a link.
+    """
+    if not (math.isfinite(minutes) and 0 < minutes <= MAX_MINUTES):
+        raise ConfigError(f"the time budget must be positive and at most a week, got {minutes}")
+    if epochs is not None and epochs < 1:
+        raise ConfigError(f"epochs must be at least 1, got {epochs}")
     from pfnet.data import prepare_dataset, read_manifest
     from pfnet.devices import inference_device
     from pfnet.evaluation import SCALE, evaluate_predictions, render_evaluation_gallery
@@ -156,8 +143,8 @@ def run(args: argparse.Namespace) -> int:
     from pfnet.training import train
     from pfnet.training.config import preset_config
 
-    device = inference_device(args.device)
-    out: Path = args.out
+    device = inference_device(device)
+    out = Path(out)
     data_dir, pred_dir = out / "data", out / "predictions"
     for folder in (data_dir, pred_dir, out / "predictions-shipped", out / "run"):
         if folder.is_symlink():  # a planted link would take the demo's outputs elsewhere
@@ -167,33 +154,33 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
 
     _step(1, "data set")
-    source = choose_source(args)
+    source = choose_source(source, procedural=procedural)
     if (data_dir / "manifest.json").is_file():
         print(f"reusing the data set in {data_dir} (delete it to rebuild)")
     else:
         print(f"building it from {source or 'procedural shapes'} into {data_dir}")
         report = prepare_dataset(
-            source, data_dir, points=args.points, seed=args.seed, count=args.count, progress=None
+            source, data_dir, points=points, seed=seed, count=count, progress=None
         )
         print(report.summary())
     manifest = read_manifest(data_dir)
 
     _step(2, f"training the small PF-Net preset on {device}")
-    config = preset_config("small").replace(seed=args.seed)
+    config = preset_config("small").replace(seed=seed)
     print(f"run folder {run_dir}")
-    if args.epochs is not None:
-        train(config.replace(epochs=args.epochs), data_dir, run_dir, device=device)
+    if epochs is not None:
+        train(config.replace(epochs=epochs), data_dir, run_dir, device=device)
     else:
-        budget = args.minutes * 60.0
+        budget = minutes * 60.0
         t0 = time.monotonic()
         # Two epochs first: the first one pays for start-up (imports, data-loader workers,
         # CUDA initialisation), the second one's wall time is what every later epoch costs.
         summary = train(config.replace(epochs=2), data_dir, run_dir, device=device)
         per_epoch = float(summary["final"].get("time_s") or 0.0)
-        epochs = epochs_for_budget(budget - (time.monotonic() - t0), per_epoch, config.epochs)
-        print(f"an epoch takes {per_epoch:.1f} s after start-up: training {epochs} epochs in all")
-        if epochs > 2:
-            train(config.replace(epochs=epochs), data_dir, run_dir, device=device, resume=True)
+        total = epochs_for_budget(budget - (time.monotonic() - t0), per_epoch, config.epochs)
+        print(f"an epoch takes {per_epoch:.1f} s after start-up: training {total} epochs in all")
+        if total > 2:
+            train(config.replace(epochs=total), data_dir, run_dir, device=device, resume=True)
     checkpoint = find_checkpoint(run_dir)
 
     _step(3, "predicting the test split (deterministic test protocol)")
@@ -208,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     write_json(metrics_path, evaluation.report)
 
     _step(5, "the shipped model on the same test split")
-    shipped = shipped_comparison(data_dir, int(manifest.get("points", args.points)))
+    shipped = shipped_comparison(data_dir, int(manifest.get("points", points)))
     columns = {"this run": pred_dir}
     shipped_mean = None
     if shipped is not None:
@@ -228,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
         data_dir,
         split="test",
         missing_ratio=ratio,
-        count=args.gallery_count,
+        count=gallery_count,
         columns=columns,
     )
 
@@ -256,4 +243,3 @@ def run(args: argparse.Namespace) -> int:
         )
     print("next: pfnet complete your_scan.ply --out completed/   (the shipped model)")
     print(f"      pfnet complete your_scan.ply --checkpoint {checkpoint} --out completed/")
-    return 0

@@ -1,24 +1,25 @@
 """``pfnet evaluate``: score any method's prediction folder against a data set.
 
-The scoring (file layout, regions, metrics) is :mod:`pfnet.evaluation`'s; this module holds
-the command: its options, the checks of its output paths and of ``PRED/predictions.json``,
-and what it prints.
+The scoring (file layout, regions, metrics, the protocol ``PRED/predictions.json`` records)
+is :mod:`pfnet.evaluation`'s; this module holds the command: its options, the checks of its
+output paths and of the recorded protocol against the options, and what it prints.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from pfnet.errors import ConfigError
+from pfnet.errors import ConfigError, DataError
 from pfnet.evaluation import (
     FAR,
+    MAX_WORKERS,
     REGIONS,
     SCALE,
     Evaluation,
     evaluate_predictions,
+    recorded_protocol,
     render_evaluation_gallery,
 )
 
@@ -71,10 +72,16 @@ def run(args: argparse.Namespace) -> int:
     from pfnet.reports import format_table, write_csv, write_json
 
     if args.gallery is not None and args.gallery_count < 1:
-        raise ConfigError(f"evaluate: --gallery-count must be at least 1, got {args.gallery_count}")
+        raise ConfigError(f"--gallery-count must be at least 1, got {args.gallery_count}")
     if args.gallery is not None and args.gallery.suffix.lower() != ".png":
-        raise ConfigError(f"evaluate: --gallery must be a .png file, got {args.gallery}")
-    args.missing_ratio = recorded_protocol(args)
+        raise ConfigError(f"--gallery must be a .png file, got {args.gallery}")
+    if args.pred_is_complete and args.region != "whole":
+        raise ConfigError("--pred-is-complete needs --region whole")
+    if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
+        raise ConfigError(f"--workers must be in [1, {MAX_WORKERS}], got {args.workers}")
+    args.missing_ratio = _scoring_ratio(args)
+    if not 0.0 < args.missing_ratio < 1.0:
+        raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
     for flag in ("json", "csv", "gallery"):
         if getattr(args, flag) is not None:  # checked before scoring, not after
             check_report_path(getattr(args, flag), args.pred, [args.data], flag=f"--{flag}")
@@ -122,11 +129,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def recorded_protocol(args: argparse.Namespace) -> float:
+def _scoring_ratio(args: argparse.Namespace) -> float:
     """The missing ratio to score with, checked against ``PRED/predictions.json`` if present.
-
-    Predictions made by ``pfnet predict`` record their split and crop; scoring them with
-    another crop compares each prediction with the wrong missing region, silently.
 
     Raises:
         ConfigError: ``--split`` or ``--missing-ratio`` differs from the record (unless
@@ -134,36 +138,26 @@ def recorded_protocol(args: argparse.Namespace) -> float:
     """
     record = Path(args.pred) / "predictions.json"
     asked = args.missing_ratio
-    if not record.is_file():
-        return 0.25 if asked is None else asked
     try:
-        info = json.loads(record.read_text(encoding="utf-8"))
-        made_ratio = float(info["protocol"]["missing_ratio"])
-        made_split = str(info["split"])
-    except (
-        OSError,
-        ValueError,
-        KeyError,
-        TypeError,
-        RecursionError,
-    ) as err:  # ValueError: bad UTF-8 or JSON
+        recorded = recorded_protocol(args.pred)
+    except DataError as err:
         if args.ignore_recorded_protocol:
             return 0.25 if asked is None else asked
-        raise ConfigError(
-            f"evaluate: cannot read {record} ({type(err).__name__}: {str(err)[:120]}); "
-            "fix or remove it, or pass --ignore-recorded-protocol"
-        ) from None
+        raise ConfigError(f"{err}; fix or remove it, or pass --ignore-recorded-protocol") from None
+    if recorded is None:
+        return 0.25 if asked is None else asked
+    made_split, made_ratio = recorded
     ratio = made_ratio if asked is None else asked
     if args.ignore_recorded_protocol:
         return ratio
     if made_split != args.split:
         raise ConfigError(
-            f"evaluate: {args.pred} holds predictions of the {made_split!r} split "
+            f"{args.pred} holds predictions of the {made_split!r} split "
             f"({record}); pass --split {made_split}, or --ignore-recorded-protocol"
         )
     if abs(ratio - made_ratio) > 1e-9:
         raise ConfigError(
-            f"evaluate: {args.pred} was predicted with {made_ratio:g} missing ({record}), "
+            f"{args.pred} was predicted with {made_ratio:g} missing ({record}), "
             f"not {ratio:g}; drop --missing-ratio, or pass --ignore-recorded-protocol"
         )
     return ratio

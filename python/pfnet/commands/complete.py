@@ -1,0 +1,62 @@
+"""``pfnet complete``: complete your own partial point clouds with a trained model.
+
+What is done to each input and which files are written: :mod:`pfnet.completion`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pfnet.devices import DEVICE_HELP
+from pfnet.errors import ConfigError
+
+HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pfnet complete``."""
+    parser.add_argument(
+        "inputs", nargs="+", type=Path, metavar="INPUT", help="partial clouds to complete"
+    )
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="checkpoint (best.pt of pfnet train), model file or shipped model's name "
+        "(default: the shipped default model; see pfnet models)",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
+    parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
+    from pfnet.checkpoint import load_checkpoint
+    from pfnet.completion import check_outputs, complete_files
+    from pfnet.devices import inference_device
+
+    if args.batch_size < 1:
+        raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
+    if args.out.exists() and not args.out.is_dir():
+        raise ConfigError(f"--out {args.out} is a file; name a folder for the outputs")
+    inputs = check_outputs(args.inputs, args.out)
+    device = inference_device(args.device)
+    model, _ = load_checkpoint(args.checkpoint, device=device)
+    done, failed = complete_files(
+        model,
+        inputs,
+        args.out,
+        batch_size=args.batch_size,
+        device=device,
+        on_skip=lambda err: print(f"skipped: {err}", file=sys.stderr),
+    )
+    print(
+        f"completed {done} of {len(inputs)} file(s) into {args.out} "
+        f"(<stem>_missing.ply and <stem>_completed.ply)"
+    )
+    if failed:
+        print(f"pfnet complete: {len(failed)} file(s) could not be read", file=sys.stderr)
+        return 2
+    return 0

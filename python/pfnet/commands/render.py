@@ -1,0 +1,77 @@
+"""``pfnet render``: draw point cloud files into a PNG (see :mod:`pfnet.rendering`)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from pfnet.errors import ConfigError
+
+HELP = "Draw point clouds (partial grey, prediction yellow, ground truth blue) into a PNG."
+
+ROLES = ("partial", "prediction", "ground-truth")
+# --role -> the RenderSample field the FILE rows fill
+_FIELDS = {"partial": "partial", "prediction": "prediction", "ground-truth": "ground_truth"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pfnet render``."""
+    parser.add_argument(
+        "files",
+        nargs="*",
+        metavar="FILE",
+        help="point cloud files (.npy .ply .xyz .pts .txt .pcd), one row each, coloured by --role",
+    )
+    parser.add_argument(
+        "--sample",
+        nargs=3,
+        action="append",
+        default=[],
+        metavar=("PARTIAL", "PRED", "GT"),
+        help="one row from a partial input, a prediction and a ground truth file "
+        "('-' leaves one out); repeat for more rows",
+    )
+    parser.add_argument("--out", required=True, type=Path, help="PNG file to write")
+    parser.add_argument(
+        "--role",
+        choices=ROLES,
+        default="ground-truth",
+        help="colour of the FILE rows: partial grey, prediction yellow, ground-truth blue "
+        "(default: %(default)s)",
+    )
+    parser.add_argument("--views", type=int, default=2, help="view angles (default: 2)")
+    parser.add_argument("--title", default=None, help="figure title")
+    parser.add_argument("--point-size", type=float, default=2.0, help="marker size (default: 2)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``pfnet render``."""
+    from pfnet.io import read_point_cloud, refuse_input_overwrite
+    from pfnet.rendering import MAX_POINT_SIZE, MAX_VIEWS, RenderSample, render_gallery
+
+    if not args.files and not args.sample:
+        raise ConfigError("give at least one FILE or --sample PARTIAL PRED GT")
+    if args.out.suffix.lower() != ".png":
+        raise ConfigError(f"--out must be a .png file, got {args.out}")
+    if not 1 <= args.views <= MAX_VIEWS:
+        raise ConfigError(f"--views must be in [1, {MAX_VIEWS}], got {args.views}")
+    if not (math.isfinite(args.point_size) and 0 < args.point_size <= MAX_POINT_SIZE):
+        raise ConfigError(f"--point-size must be in (0, {MAX_POINT_SIZE:g}], got {args.point_size}")
+    inputs = [*args.files, *(t for triple in args.sample for t in triple if t != "-")]
+    refuse_input_overwrite([args.out], inputs)
+    samples = []
+    for name in args.files:
+        samples.append(RenderSample(label=Path(name).name))
+        setattr(samples[-1], _FIELDS[args.role], read_point_cloud(name))
+    for triple in args.sample:
+        if all(t == "-" for t in triple):
+            raise ConfigError("--sample needs at least one file that is not '-'")
+        clouds = [None if t == "-" else read_point_cloud(t) for t in triple]
+        label = Path(next(t for t in triple if t != "-")).stem
+        samples.append(RenderSample(label, *clouds))
+    path = render_gallery(
+        args.out, samples, views=args.views, title=args.title, point_size=args.point_size
+    )
+    print(f"wrote {path} ({len(samples)} row(s))")
+    return 0
