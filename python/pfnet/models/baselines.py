@@ -7,9 +7,11 @@ neither, as it emits coordinates). PF-Net (vanilla) is :class:`pfnet.models.PFNe
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from torch import Tensor, nn
 
-from pfnet.models.completion import Completion
+from pfnet.models.completion import Completion, CompletionModel
 from pfnet.models.layers import PointMLP, check_partial, fc_block, scaled
 from pfnet.models.pfnet import CMLP, MultiResolutionEncoder
 
@@ -48,12 +50,12 @@ class PointNetEncoder(nn.Module):
         return self.mlp(points)[-1].amax(dim=2)
 
 
-class _Baseline(nn.Module):
+class _Baseline(CompletionModel):
     """An encoder followed by the two-layer FC decoder; no discriminator."""
 
-    adversarial = False
-    multi_resolution = False
-    multi_stage = False
+    adversarial: ClassVar[bool] = False
+    multi_resolution: ClassVar[bool] = False
+    multi_stage: ClassVar[bool] = False
 
     def __init__(self, encoder: nn.Module, n_points: int, n_missing: int, width: float) -> None:
         super().__init__()
@@ -116,7 +118,7 @@ class MRCMLPCompletion(_Baseline):
         width: Multiplier of every hidden layer.
     """
 
-    multi_resolution = True
+    multi_resolution: ClassVar[bool] = True
 
     def __init__(self, n_points: int, n_missing: int, width: float = 1.0) -> None:
         super().__init__(MultiResolutionEncoder(width), n_points, n_missing, width)

@@ -14,11 +14,13 @@ leak into the features. A checkpoint trained by the authors' code cannot be load
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import torch
 from torch import Tensor, nn
 
 from pfnet.errors import ConfigError
-from pfnet.models.completion import Completion
+from pfnet.models.completion import Completion, CompletionModel
 from pfnet.models.layers import (
     BatchNormFC,
     PointMLP,
@@ -161,7 +163,7 @@ class PointPyramidDecoder(nn.Module):
         return Completion(primary, secondary, detail)
 
 
-class PFNet(nn.Module):
+class PFNet(CompletionModel):
     """PF-Net generator: :class:`MultiResolutionEncoder` + :class:`PointPyramidDecoder`.
 
     Trained with the multi-stage completion loss and the adversarial loss of a
@@ -173,9 +175,9 @@ class PFNet(nn.Module):
         width: Multiplier of every hidden layer (1.0 = the paper's network).
     """
 
-    adversarial = True
-    multi_resolution = True
-    multi_stage = True  # predicts primary and secondary centres (Eq. 2's extra terms)
+    adversarial: ClassVar[bool] = True
+    multi_resolution: ClassVar[bool] = True
+    multi_stage: ClassVar[bool] = True  # predicts primary and secondary centres (Eq. 2)
 
     def __init__(self, n_points: int, n_missing: int, width: float = 1.0) -> None:
         super().__init__()
@@ -201,7 +203,7 @@ class PFNet(nn.Module):
 class PFNetVanilla(PFNet):
     """PF-Net (vanilla): the same generator trained without the discriminator (paper Table 4)."""
 
-    adversarial = False
+    adversarial: ClassVar[bool] = False
 
 
 class Discriminator(nn.Module):
