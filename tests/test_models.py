@@ -80,6 +80,24 @@ def test_cmlp_concatenates_the_last_four_max_pooled_layers() -> None:
     assert cmlp(torch.rand(2, 50, 3)).shape == (2, 1920)
 
 
+def _conv_widths(module: torch.nn.Module) -> list[int]:
+    return [m.out_channels for m in module.modules() if isinstance(m, torch.nn.Conv1d)]
+
+
+def test_cmlp_layers_are_the_authors_in_each_model() -> None:
+    # PF-Net's encoder (model_PFNet.py Convlayer): six layers; the CMLP baseline
+    # (CMLP_autoencoder) and the paper (§3.1): five. Both pool 128 + 256 + 512 + 1024.
+    encoder = [64, 64, 128, 256, 512, 1024]
+    pfnet = PFNet(n_points=512, n_missing=128)
+    assert all(_conv_widths(cmlp) == encoder for cmlp in pfnet.encoder.cmlps)
+    mr_cmlp = MODELS["mr-cmlp"](n_points=512, n_missing=128)
+    assert all(_conv_widths(cmlp) == encoder for cmlp in mr_cmlp.encoder.cmlps)
+    cmlp = MODELS["cmlp"](n_points=512, n_missing=128)
+    assert _conv_widths(cmlp.encoder) == [64, 128, 256, 512, 1024]
+    assert cmlp.encoder.out_features == 1920 and cmlp.decoder.layers[0][0].in_features == 1920
+    assert _conv_widths(MODELS["mlp"](n_points=512, n_missing=128).encoder) == encoder[1:]
+
+
 def test_decoder_builds_detail_around_secondary_and_secondary_around_primary() -> None:
     decoder = PointPyramidDecoder(in_features=32, n_missing=256, width=WIDTH).eval()
     out = decoder(torch.rand(2, 32))

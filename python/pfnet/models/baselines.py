@@ -13,7 +13,7 @@ from torch import Tensor, nn
 
 from pfnet.models.completion import Completion, CompletionModel
 from pfnet.models.layers import PointMLP, check_partial, fc_block, scaled
-from pfnet.models.pfnet import CMLP, MultiResolutionEncoder
+from pfnet.models.pfnet import BASELINE_CMLP_CHANNELS, CMLP, MultiResolutionEncoder
 
 
 class _FCDecoder(nn.Module):
@@ -99,6 +99,9 @@ class MLPCompletion(_Baseline):
 class CMLPCompletion(_Baseline):
     """Single-resolution CMLP baseline: CMLP encoder (1920-d) + FC [1024, M·3].
 
+    The encoder has the paper's five layers [64-128-256-512-1024], as the authors' baseline
+    (``CMLP_autoencoder``); PF-Net's and MR-CMLP's encoders have six (an extra 64 layer).
+
     Args:
         n_points: Size N of the complete clouds the model is trained for.
         n_missing: M, the number of points it predicts.
@@ -106,7 +109,7 @@ class CMLPCompletion(_Baseline):
     """
 
     def __init__(self, n_points: int, n_missing: int, width: float = 1.0) -> None:
-        super().__init__(CMLP(width), n_points, n_missing, width)
+        super().__init__(CMLP(width, BASELINE_CMLP_CHANNELS), n_points, n_missing, width)
 
 
 class MRCMLPCompletion(_Baseline):

@@ -33,21 +33,30 @@ from pfnet.models.layers import (
 PRIMARY_POINTS = 64  # M1 (paper §4: "we set M1 = 64, M2 = 128")
 SECONDARY_POINTS = 128  # M2
 N_SCALES = 3  # scales of the multi-resolution encoder (k = 2: n, n/2, n/4)
+# The CMLP's layers. The paper gives [64-128-256-512-1024] (§3.1), as the authors' CMLP
+# baseline has it; the CMLPs of their PF-Net encoder (model_PFNet.py) have one more 64 layer.
+ENCODER_CMLP_CHANNELS = (64, 64, 128, 256, 512, 1024)
+BASELINE_CMLP_CHANNELS = (64, 128, 256, 512, 1024)
 
 
 class CMLP(nn.Module):
     """Combined multi-layer perceptron (paper §3.1, Fig. 4b).
 
-    A shared per-point MLP 3→64→64→128→256→512→1024 (BN + ReLU); the last four layers are
+    A shared per-point MLP (BN + ReLU); the last four layers, 128, 256, 512 and 1024 wide, are
     max-pooled over the points and concatenated into a 1920-d vector.
 
     Args:
         width: Multiplier of every layer's channels (1.0 = the paper's).
+        channels: The layers' widths at ``width = 1``: :data:`ENCODER_CMLP_CHANNELS`
+            (3→64→64→128→256→512→1024, PF-Net's encoder) or :data:`BASELINE_CMLP_CHANNELS`
+            (3→64→128→256→512→1024, the CMLP baseline).
     """
 
-    def __init__(self, width: float = 1.0) -> None:
+    def __init__(
+        self, width: float = 1.0, channels: tuple[int, ...] = ENCODER_CMLP_CHANNELS
+    ) -> None:
         super().__init__()
-        channels = [scaled(c, width) for c in (64, 64, 128, 256, 512, 1024)]
+        channels = [scaled(c, width) for c in channels]
         self.mlp = PointMLP(channels)
         self.out_features = sum(channels[-4:])
 
