@@ -10,9 +10,9 @@ from typing import Any
 from pfnet.errors import ConfigError, DataError
 from pfnet.models.registry import MODEL_TITLES
 from pfnet.study.paper import (
+    PAPER_MEANS,
     PAPER_ORDER,
     PAPER_TABLE2_CHAIR_MISSING,
-    PAPER_TABLE2_MEAN,
     PAPER_TABLE4_CHAIR,
     PAPER_TABLE5_AIRPLANE,
 )
@@ -153,14 +153,15 @@ def render_report(results: dict[str, Any], assets: str = "") -> str:
     if base:
         lines += [f"**Missing region, {BASE_RATIO:.0%} missing** (the paper's Tables 2 and 4)", ""]
         lines += region_table(base, "missing")
-        lines += ["", f"**Whole cloud, {BASE_RATIO:.0%} missing** (Table 2)", ""]
+        lines += ["", f"**Whole cloud, {BASE_RATIO:.0%} missing** (Table 1)", ""]
         lines += region_table(base, "whole")
-        paper = PAPER_TABLE2_MEAN
+        paper = PAPER_MEANS
         lines += [
             "",
             "For scale, the paper on ShapeNet-Part (13 categories, full-width network, 200 "
-            f"epochs): PF-Net missing {paper['missing'][0]} / {paper['missing'][1]}, whole "
-            f"{paper['whole'][0]} / {paper['whole'][1]}; chair, missing region: Table 4 "
+            f"epochs): PF-Net missing {paper['missing'][0]} / {paper['missing'][1]} (Table 2), "
+            f"whole {paper['whole'][0]} / {paper['whole'][1]} (Table 1); chair, missing region: "
+            "Table 4 "
             + ", ".join(f"{MODEL_TITLES[m]} {a} / {b}" for m, (a, b) in PAPER_TABLE4_CHAIR.items())
             + "; Table 2 "
             + ", ".join(
