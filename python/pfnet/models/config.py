@@ -1,9 +1,9 @@
 """What defines a completion network and its protocol: :class:`ModelConfig`.
 
 A checkpoint or shipped model stores a training configuration; loading it for inference
-reads only these keys, so inference never imports :mod:`pfnet.training`. Does not import
-torch. The checks here are shared with :class:`pfnet.training.TrainConfig`, which extends
-this class with the training run's settings.
+reads only these keys, so inference never imports the training package. Does not import
+torch. The checks here are shared with ``TrainConfig``, which extends this class with the
+training run's settings.
 """
 
 from __future__ import annotations
