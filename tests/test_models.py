@@ -11,13 +11,17 @@ from pfnet.errors import ConfigError  # noqa: E402
 from pfnet.geometry import farthest_point_sample  # noqa: E402
 from pfnet.models import (  # noqa: E402
     CMLP,
+    MODEL_NAMES,
     MODELS,
     Completion,
+    CompletionModel,
     Discriminator,
+    ModelConfig,
     MultiResolutionEncoder,
     PFNet,
     PointPyramidDecoder,
     build_model,
+    initialise,
 )
 from pfnet.models.layers import BatchNormFC, multi_resolution_indices  # noqa: E402
 from pfnet.training.config import TrainConfig  # noqa: E402
@@ -38,7 +42,7 @@ def test_every_model_output_shapes(name: str, batch: int, n_partial: int) -> Non
     assert isinstance(out, Completion)
     assert out.detail.shape == (batch, 128, 3)
     assert model.n_missing == 128 and model.n_points == 512
-    if getattr(model, "multi_stage", False):
+    if model.multi_stage:
         assert out.primary.shape == (batch, 64, 3)
         assert out.secondary.shape == (batch, 128, 3)
     else:
@@ -74,6 +78,24 @@ def test_cmlp_concatenates_the_last_four_max_pooled_layers() -> None:
     cmlp = CMLP(width=1.0)
     assert cmlp.out_features == 128 + 256 + 512 + 1024
     assert cmlp(torch.rand(2, 50, 3)).shape == (2, 1920)
+
+
+def _conv_widths(module: torch.nn.Module) -> list[int]:
+    return [m.out_channels for m in module.modules() if isinstance(m, torch.nn.Conv1d)]
+
+
+def test_cmlp_layers_are_the_authors_in_each_model() -> None:
+    # PF-Net's encoder (model_PFNet.py Convlayer): six layers; the CMLP baseline
+    # (CMLP_autoencoder) and the paper (§3.1): five. Both pool 128 + 256 + 512 + 1024.
+    encoder = [64, 64, 128, 256, 512, 1024]
+    pfnet = PFNet(n_points=512, n_missing=128)
+    assert all(_conv_widths(cmlp) == encoder for cmlp in pfnet.encoder.cmlps)
+    mr_cmlp = MODELS["mr-cmlp"](n_points=512, n_missing=128)
+    assert all(_conv_widths(cmlp) == encoder for cmlp in mr_cmlp.encoder.cmlps)
+    cmlp = MODELS["cmlp"](n_points=512, n_missing=128)
+    assert _conv_widths(cmlp.encoder) == [64, 128, 256, 512, 1024]
+    assert cmlp.encoder.out_features == 1920 and cmlp.decoder.layers[0][0].in_features == 1920
+    assert _conv_widths(MODELS["mlp"](n_points=512, n_missing=128).encoder) == encoder[1:]
 
 
 def test_decoder_builds_detail_around_secondary_and_secondary_around_primary() -> None:
@@ -173,3 +195,64 @@ def test_integer_partial_and_bad_scale_indices_are_rejected() -> None:
         model(torch.ones(1, 20, 3, dtype=torch.int64))
     with pytest.raises(ValueError, match=r"scale_indices must have shape \(1, 10\)"):
         model(torch.rand(1, 20, 3), torch.zeros(1, 5, dtype=torch.int64))
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_every_registered_model_declares_its_capabilities(name: str) -> None:
+    cls = MODELS[name]
+    assert issubclass(cls, CompletionModel)
+    flags = (cls.adversarial, cls.multi_resolution, cls.multi_stage)
+    assert all(isinstance(flag, bool) for flag in flags)
+    assert cls.adversarial == (name == "pfnet")
+    assert cls.multi_stage == name.startswith("pfnet")
+    assert cls.multi_resolution == (name in ("pfnet", "pfnet-vanilla", "mr-cmlp"))
+
+
+def _layers(module: torch.nn.Module, kinds: tuple[type, ...]) -> list[torch.nn.Module]:
+    return [m for m in module.modules() if isinstance(m, kinds)]
+
+
+def test_authors_initialisation_statistics() -> None:
+    # Train_PFNet.py's weights_init_normal, applied to generator and discriminator alike.
+    for module in (PFNet(n_points=2048, n_missing=512, width=0.5), Discriminator(width=1.0)):
+        before = {k: v.clone() for k, v in module.state_dict().items()}
+        initialise(module, "authors")
+        big = [c.weight for c in _layers(module, (torch.nn.Conv1d,)) if c.weight.numel() > 30_000]
+        assert big
+        for weight in big:
+            assert abs(weight.std().item() - 0.02) < 0.001 and abs(weight.mean().item()) < 0.001
+        norms = _layers(module, (torch.nn.BatchNorm1d,))  # BatchNormFC included
+        weights = torch.cat([n.weight for n in norms])
+        assert abs(weights.mean().item() - 1) < 0.005 and 0.01 < weights.std().item() < 0.03
+        assert all(torch.equal(n.bias, torch.zeros_like(n.bias)) for n in norms)
+        # Fully connected layers and convolution biases keep PyTorch's values, as theirs do.
+        after = module.state_dict()
+        for name, linear in module.named_modules():
+            if isinstance(linear, torch.nn.Linear):
+                assert torch.equal(after[f"{name}.weight"], before[f"{name}.weight"])
+            if isinstance(linear, torch.nn.Conv1d):
+                assert torch.equal(after[f"{name}.bias"], before[f"{name}.bias"])
+
+
+def test_pytorch_initialisation_is_what_build_model_gives() -> None:
+    config = ModelConfig(model="pfnet", n_points=512, width=WIDTH)
+    torch.manual_seed(3)
+    plain = build_model(config).state_dict()
+    torch.manual_seed(3)
+    model = initialise(build_model(config), "pytorch")
+    assert all(torch.equal(v, plain[k]) for k, v in model.state_dict().items())
+    with pytest.raises(ConfigError, match="init must be one of pytorch, authors"):
+        initialise(model, "xavier")
+
+
+@pytest.mark.parametrize("init", ["pytorch", "authors"])
+def test_training_step_initialises_generator_and_discriminator(init: str) -> None:
+    from pfnet.training.config import TrainConfig
+    from pfnet.training.distributed import DistContext
+    from pfnet.training.step import TrainingStep
+
+    config = TrainConfig(model="pfnet", n_points=512, width=WIDTH, init=init)
+    step = TrainingStep(config, DistContext(0, 1, 0, torch.device("cpu")))
+    for module in (step.generator, step.discriminator):
+        weights = torch.cat([n.weight for n in _layers(module, (torch.nn.BatchNorm1d,))])
+        assert torch.all(weights == 1) == (init == "pytorch")

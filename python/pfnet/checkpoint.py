@@ -1,7 +1,8 @@
 """Training checkpoints: plain dicts of tensors and builtins (``torch.load(weights_only=True)``).
 
 A checkpoint holds the configuration it was trained with, so ``load_checkpoint`` rebuilds the
-model with nothing else. Keys: ``format``, ``version``, ``config`` (``TrainConfig.to_dict()``),
+model with nothing else. Keys: ``format``, ``version``, ``config`` (``TrainConfig.to_dict()``,
+of which loading reads the :class:`~pfnet.models.ModelConfig` keys),
 ``model`` (generator state dict), ``discriminator`` (or ``None``), ``optimizer_g``,
 ``optimizer_d``, ``scheduler_g``, ``scheduler_d``, ``epoch`` (epochs completed),
 ``batches_done`` (batches of the current epoch already trained, for a mid-epoch resume),
@@ -13,14 +14,16 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
-from torch import nn
 
 from pfnet.errors import DataError
 from pfnet.io import atomic_path
-from pfnet.training.config import TrainConfig
+from pfnet.models.config import ModelConfig
+
+if TYPE_CHECKING:
+    from pfnet.models import CompletionModel
 
 FORMAT = "pfnet-checkpoint"
 VERSION = 1
@@ -60,7 +63,7 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
     return state
 
 
-def check_weights(path: Path, config: TrainConfig, weights: dict[str, Any]) -> None:
+def check_weights(path: Path, config: ModelConfig, weights: dict[str, Any]) -> None:
     """Check the stored weights against the model ``config`` describes, before building it.
 
     The model is built on PyTorch's ``meta`` device (shapes only, no memory), so a forged
@@ -98,7 +101,7 @@ def check_weights(path: Path, config: TrainConfig, weights: dict[str, Any]) -> N
 
 def load_checkpoint(
     path: str | os.PathLike[str] | None, device: str | torch.device = "cpu"
-) -> tuple[nn.Module, TrainConfig]:
+) -> tuple[CompletionModel, ModelConfig]:
     """Rebuild a trained generator from a checkpoint or a shipped model.
 
     Args:
@@ -109,7 +112,8 @@ def load_checkpoint(
 
     Returns:
         ``(model, config)``: the generator (float32) in eval mode on ``device`` and its
-        :class:`TrainConfig` (``model``, ``n_points``, ``n_missing``, ``missing_ratio``, ...).
+        :class:`~pfnet.models.ModelConfig` (``model``, ``n_points``, ``n_missing``,
+        ``missing_ratio``, ``width``); the training settings stay in the file.
 
     Raises:
         ConfigError: ``path`` names neither a file nor a shipped model.
@@ -125,7 +129,7 @@ def load_checkpoint(
     else:
         state = read_checkpoint(path, device)
         config_dict, weights = state["config"], state["model"]
-    config = TrainConfig.from_dict(config_dict, source=f"checkpoint {path}")
+    config = ModelConfig.from_dict(config_dict, source=f"checkpoint {path}", extra="ignore")
     check_weights(path, config, weights)
     model = build_model(config)
     try:

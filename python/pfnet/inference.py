@@ -20,13 +20,6 @@ from pfnet.devices import inference_device
 from pfnet.errors import ConfigError, DataError
 
 
-def config_value(config: Any, key: str) -> Any:
-    """Read ``key`` from a checkpoint's config, whether a dataclass or a plain dict."""
-    if isinstance(config, dict):
-        return config.get(key)
-    return getattr(config, key, None)
-
-
 def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: str) -> np.ndarray:
     """Run ``model`` over ``partial`` clouds in batches.
 
@@ -96,7 +89,7 @@ def predict_split(
             f"prediction folder {out_dir} is a file; name a folder for the predictions"
         )
     model, config = load_checkpoint(checkpoint, device=device)
-    trained_ratio = config_value(config, "missing_ratio")
+    trained_ratio = config.missing_ratio
     ratio = float(trained_ratio if missing_ratio is None else missing_ratio)
     if not 0.0 < ratio < 1.0:
         raise ConfigError(f"missing ratio must be in (0, 1), got {ratio}")
@@ -138,8 +131,8 @@ def predict_split(
             "viewpoint": "VIEWPOINTS[i % 5] for sample i in split order",
         },
         "model": {
-            "name": config_value(config, "model"),
-            "n_points": config_value(config, "n_points"),
+            "name": config.model,
+            "n_points": config.n_points,
             "missing_ratio": trained_ratio,
             "n_predicted": int(detail.shape[1]),
         },

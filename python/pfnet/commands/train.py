@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 
 from pfnet.errors import ConfigError, DataError
+from pfnet.models.registry import MODEL_NAMES
 from pfnet.training.config import (
-    MODEL_NAMES,
     PRECISIONS,
     PRESETS,
     TRAIN_CROPS,

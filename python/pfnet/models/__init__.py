@@ -1,74 +1,69 @@
 """Completion models: PF-Net, PF-Net (vanilla), the MLP / CMLP / MR-CMLP baselines.
 
-Every generator maps ``partial (B, n, 3)`` to a :class:`Completion` and carries
-``n_points`` (complete cloud size it was trained for), ``n_missing`` (M, points it predicts),
-``adversarial`` (trained with the :class:`Discriminator`), ``multi_resolution`` (takes the
-IFPS ``scale_indices``) and ``multi_stage`` (also predicts the primary and secondary centres).
-Importing this package imports torch.
+Every generator is a :class:`CompletionModel`: it maps ``partial (B, n, 3)`` to a
+:class:`Completion`, carries ``n_points`` (complete cloud size it was trained for) and
+``n_missing`` (M, points it predicts), and declares ``adversarial`` (trained with the
+:class:`Discriminator`), ``multi_resolution`` (takes the IFPS ``scale_indices``) and
+``multi_stage`` (also predicts the primary and secondary centres). :data:`REGISTRY` is the one
+list of them; :class:`ModelConfig` says which one, at what size.
+
+Importing this package needs no torch; the network classes and :func:`build_model` import it
+when first used.
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+import importlib
+from typing import Any
 
-from torch import nn
+from pfnet.models.config import INIT_SCHEMES, ModelConfig
+from pfnet.models.registry import MODEL_NAMES, MODEL_TITLES, REGISTRY, RegisteredModel
 
-from pfnet.errors import ConfigError
-from pfnet.models.baselines import CMLPCompletion, MLPCompletion, MRCMLPCompletion
-from pfnet.models.completion import Completion
-from pfnet.models.pfnet import (
-    CMLP,
-    Discriminator,
-    MultiResolutionEncoder,
-    PFNet,
-    PFNetVanilla,
-    PointPyramidDecoder,
-)
-
-MODELS: dict[str, type[nn.Module]] = {
-    "pfnet": PFNet,
-    "pfnet-vanilla": PFNetVanilla,
-    "mlp": MLPCompletion,
-    "cmlp": CMLPCompletion,
-    "mr-cmlp": MRCMLPCompletion,
+# Names importable from here that need torch: imported on first access.
+_LAZY = {
+    "CMLP": "pfnet.models.pfnet",
+    "MultiResolutionEncoder": "pfnet.models.pfnet",
+    "PointPyramidDecoder": "pfnet.models.pfnet",
+    "Discriminator": "pfnet.models.pfnet",
+    "PFNet": "pfnet.models.pfnet",
+    "PFNetVanilla": "pfnet.models.pfnet",
+    "MLPCompletion": "pfnet.models.baselines",
+    "CMLPCompletion": "pfnet.models.baselines",
+    "MRCMLPCompletion": "pfnet.models.baselines",
+    "Completion": "pfnet.models.completion",
+    "CompletionModel": "pfnet.models.completion",
+    "build_model": "pfnet.models.build",
+    "initialise": "pfnet.models.build",
 }
 
 
-class ModelSpec(Protocol):
-    """What :func:`build_model` reads from a configuration (e.g. ``TrainConfig``)."""
-
-    model: str
-    n_points: int | None
-    n_missing: int
-    width: float
-
-
-def build_model(config: ModelSpec) -> nn.Module:
-    """Build the generator named by ``config.model`` (in training mode, on the CPU).
-
-    Raises:
-        ConfigError: Unknown model name, or sizes the model cannot produce.
-    """
-    if config.model not in MODELS:
-        raise ConfigError(f"unknown model {config.model!r}; choose one of {', '.join(MODELS)}")
-    if config.n_points is None:
-        raise ConfigError("n_points is not set (it is taken from the dataset when training)")
-    return MODELS[config.model](
-        n_points=config.n_points, n_missing=config.n_missing, width=config.width
-    )
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    if name == "MODELS":  # name -> class, read from the registry
+        return {model: entry.load() for model, entry in REGISTRY.items()}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 __all__ = [
     "CMLP",
+    "INIT_SCHEMES",
     "MODELS",
+    "MODEL_NAMES",
+    "MODEL_TITLES",
+    "REGISTRY",
     "CMLPCompletion",
     "Completion",
+    "CompletionModel",
     "Discriminator",
     "MLPCompletion",
     "MRCMLPCompletion",
+    "ModelConfig",
     "MultiResolutionEncoder",
     "PFNet",
     "PFNetVanilla",
     "PointPyramidDecoder",
+    "RegisteredModel",
     "build_model",
+    "initialise",
 ]

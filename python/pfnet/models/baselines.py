@@ -7,11 +7,13 @@ neither, as it emits coordinates). PF-Net (vanilla) is :class:`pfnet.models.PFNe
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from torch import Tensor, nn
 
-from pfnet.models.completion import Completion
+from pfnet.models.completion import Completion, CompletionModel
 from pfnet.models.layers import PointMLP, check_partial, fc_block, scaled
-from pfnet.models.pfnet import CMLP, MultiResolutionEncoder
+from pfnet.models.pfnet import BASELINE_CMLP_CHANNELS, CMLP, MultiResolutionEncoder
 
 
 class _FCDecoder(nn.Module):
@@ -48,12 +50,12 @@ class PointNetEncoder(nn.Module):
         return self.mlp(points)[-1].amax(dim=2)
 
 
-class _Baseline(nn.Module):
+class _Baseline(CompletionModel):
     """An encoder followed by the two-layer FC decoder; no discriminator."""
 
-    adversarial = False
-    multi_resolution = False
-    multi_stage = False
+    adversarial: ClassVar[bool] = False
+    multi_resolution: ClassVar[bool] = False
+    multi_stage: ClassVar[bool] = False
 
     def __init__(self, encoder: nn.Module, n_points: int, n_missing: int, width: float) -> None:
         super().__init__()
@@ -97,6 +99,9 @@ class MLPCompletion(_Baseline):
 class CMLPCompletion(_Baseline):
     """Single-resolution CMLP baseline: CMLP encoder (1920-d) + FC [1024, M·3].
 
+    The encoder has the paper's five layers [64-128-256-512-1024], as the authors' baseline
+    (``CMLP_autoencoder``); PF-Net's and MR-CMLP's encoders have six (an extra 64 layer).
+
     Args:
         n_points: Size N of the complete clouds the model is trained for.
         n_missing: M, the number of points it predicts.
@@ -104,7 +109,7 @@ class CMLPCompletion(_Baseline):
     """
 
     def __init__(self, n_points: int, n_missing: int, width: float = 1.0) -> None:
-        super().__init__(CMLP(width), n_points, n_missing, width)
+        super().__init__(CMLP(width, BASELINE_CMLP_CHANNELS), n_points, n_missing, width)
 
 
 class MRCMLPCompletion(_Baseline):
@@ -116,7 +121,7 @@ class MRCMLPCompletion(_Baseline):
         width: Multiplier of every hidden layer.
     """
 
-    multi_resolution = True
+    multi_resolution: ClassVar[bool] = True
 
     def __init__(self, n_points: int, n_missing: int, width: float = 1.0) -> None:
         super().__init__(MultiResolutionEncoder(width), n_points, n_missing, width)

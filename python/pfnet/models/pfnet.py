@@ -14,11 +14,13 @@ leak into the features. A checkpoint trained by the authors' code cannot be load
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import torch
 from torch import Tensor, nn
 
 from pfnet.errors import ConfigError
-from pfnet.models.completion import Completion
+from pfnet.models.completion import Completion, CompletionModel
 from pfnet.models.layers import (
     BatchNormFC,
     PointMLP,
@@ -31,21 +33,30 @@ from pfnet.models.layers import (
 PRIMARY_POINTS = 64  # M1 (paper §4: "we set M1 = 64, M2 = 128")
 SECONDARY_POINTS = 128  # M2
 N_SCALES = 3  # scales of the multi-resolution encoder (k = 2: n, n/2, n/4)
+# The CMLP's layers. The paper gives [64-128-256-512-1024] (§3.1), as the authors' CMLP
+# baseline has it; the CMLPs of their PF-Net encoder (model_PFNet.py) have one more 64 layer.
+ENCODER_CMLP_CHANNELS = (64, 64, 128, 256, 512, 1024)
+BASELINE_CMLP_CHANNELS = (64, 128, 256, 512, 1024)
 
 
 class CMLP(nn.Module):
     """Combined multi-layer perceptron (paper §3.1, Fig. 4b).
 
-    A shared per-point MLP 3→64→64→128→256→512→1024 (BN + ReLU); the last four layers are
+    A shared per-point MLP (BN + ReLU); the last four layers, 128, 256, 512 and 1024 wide, are
     max-pooled over the points and concatenated into a 1920-d vector.
 
     Args:
         width: Multiplier of every layer's channels (1.0 = the paper's).
+        channels: The layers' widths at ``width = 1``: :data:`ENCODER_CMLP_CHANNELS`
+            (3→64→64→128→256→512→1024, PF-Net's encoder) or :data:`BASELINE_CMLP_CHANNELS`
+            (3→64→128→256→512→1024, the CMLP baseline).
     """
 
-    def __init__(self, width: float = 1.0) -> None:
+    def __init__(
+        self, width: float = 1.0, channels: tuple[int, ...] = ENCODER_CMLP_CHANNELS
+    ) -> None:
         super().__init__()
-        channels = [scaled(c, width) for c in (64, 64, 128, 256, 512, 1024)]
+        channels = [scaled(c, width) for c in channels]
         self.mlp = PointMLP(channels)
         self.out_features = sum(channels[-4:])
 
@@ -161,7 +172,7 @@ class PointPyramidDecoder(nn.Module):
         return Completion(primary, secondary, detail)
 
 
-class PFNet(nn.Module):
+class PFNet(CompletionModel):
     """PF-Net generator: :class:`MultiResolutionEncoder` + :class:`PointPyramidDecoder`.
 
     Trained with the multi-stage completion loss and the adversarial loss of a
@@ -173,9 +184,9 @@ class PFNet(nn.Module):
         width: Multiplier of every hidden layer (1.0 = the paper's network).
     """
 
-    adversarial = True
-    multi_resolution = True
-    multi_stage = True  # predicts primary and secondary centres (Eq. 2's extra terms)
+    adversarial: ClassVar[bool] = True
+    multi_resolution: ClassVar[bool] = True
+    multi_stage: ClassVar[bool] = True  # predicts primary and secondary centres (Eq. 2)
 
     def __init__(self, n_points: int, n_missing: int, width: float = 1.0) -> None:
         super().__init__()
@@ -201,7 +212,7 @@ class PFNet(nn.Module):
 class PFNetVanilla(PFNet):
     """PF-Net (vanilla): the same generator trained without the discriminator (paper Table 4)."""
 
-    adversarial = False
+    adversarial: ClassVar[bool] = False
 
 
 class Discriminator(nn.Module):

@@ -7,7 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from pfnet.study.runs import BASE_RATIO, MODEL_TITLES
+from pfnet.models.registry import MODEL_TITLES
+from pfnet.study.runs import BASE_RATIO
 
 
 def plot_curves(path: Path, results: dict[str, Any]) -> Path:

@@ -11,19 +11,11 @@ from typing import Any
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
+from pfnet.models.registry import MODEL_NAMES
 from pfnet.study.aggregate import _summary
 
-# The ablation's generators in the paper's order (Table 4, best last: PF-Net first here).
-STUDY_MODELS = ("pfnet", "pfnet-vanilla", "mr-cmlp", "cmlp", "mlp")
-
-
-MODEL_TITLES = {
-    "pfnet": "PF-Net",
-    "pfnet-vanilla": "PF-Net (vanilla)",
-    "mr-cmlp": "MR-CMLP",
-    "cmlp": "CMLP",
-    "mlp": "MLP",
-}
+# The ablation's generators: every registered model, in the paper's order (PF-Net first).
+STUDY_MODELS = MODEL_NAMES
 
 
 BASE_RATIO = 0.25
@@ -194,7 +186,7 @@ def evaluate_run(run: StudyRun, data_dir: Path, run_dir: Path, device: str) -> d
     from pfnet.checkpoint import load_checkpoint
     from pfnet.data import missing_count
     from pfnet.evaluation import evaluate_predictions
-    from pfnet.inference import config_value, predict_split
+    from pfnet.inference import predict_split
     from pfnet.reports import write_json
 
     checkpoint = run_dir / "best.pt"
@@ -210,7 +202,7 @@ def evaluate_run(run: StudyRun, data_dir: Path, run_dir: Path, device: str) -> d
         reports[region] = evaluation.report
         write_json(run_dir / f"eval-{region}.json", evaluation.report)
     model, config = load_checkpoint(checkpoint, device="cpu")
-    n_points = int(config_value(config, "n_points"))
+    n_points = int(config.n_points)
     history = read_log(run_dir)
     trained = [row for row in history if row["epoch"] > 0]
     curve = [row["val_cd_l2"] for row in trained]

@@ -185,7 +185,7 @@ class Trainer:
             seed=config.seed,
         )
         self.collate = CompletionCollate(
-            multi_resolution=bool(getattr(self.generator, "multi_resolution", False)),
+            multi_resolution=self.generator.multi_resolution,
             centre_targets=self.step.multi_stage,
         )
         self.epoch = 0

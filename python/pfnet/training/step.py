@@ -16,7 +16,7 @@ from pfnet.losses import (
     generator_adversarial_loss,
     joint_loss,
 )
-from pfnet.models import Discriminator, build_model
+from pfnet.models import Discriminator, build_model, initialise
 from pfnet.training.config import TrainConfig
 from pfnet.training.distributed import DistContext
 from pfnet.training.schedule import make_scheduler
@@ -26,7 +26,8 @@ class TrainingStep:
     """The models, optimisers and schedulers of a run, and its per-batch update.
 
     Adversarial generators (PF-Net) get a :class:`Discriminator`; under DDP both are wrapped
-    in ``DistributedDataParallel``. Models are initialised from ``config.seed``.
+    in ``DistributedDataParallel``. Both networks are initialised by ``config.init``, drawing
+    from ``config.seed``.
 
     Args:
         config: The run's configuration, with ``n_points`` set.
@@ -38,15 +39,20 @@ class TrainingStep:
         self.device = device = context.device
         torch.manual_seed(config.seed)
         try:
-            self.generator = build_model(config).to(device)
+            generator = build_model(config)
         except ConfigError as err:
             raise ConfigError(
                 f"model {config.model!r} with {config.n_points} points and missing_ratio "
                 f"{config.missing_ratio}: {err}"
             ) from None
-        self.multi_stage = bool(getattr(self.generator, "multi_stage", False))
-        adversarial = bool(getattr(self.generator, "adversarial", False))
-        self.discriminator = Discriminator(config.width).to(device) if adversarial else None
+        # Initialised on the CPU, so a seed gives the same start on every device.
+        self.generator = initialise(generator, config.init).to(device)
+        self.multi_stage = generator.multi_stage
+        self.discriminator = (
+            initialise(Discriminator(config.width), config.init).to(device)
+            if generator.adversarial
+            else None
+        )
         self.g_forward: nn.Module = self.generator
         self.d_forward: nn.Module | None = self.discriminator
         if context.distributed:
