@@ -1,4 +1,6 @@
-//! The one error type of the geometry core. Python bindings convert it once, at the boundary.
+//! The one error type of the geometry core. Python bindings convert it once, at the boundary
+//! (`impl From<GeometryError> for PyErr` in `python.rs`), into `pfnet.errors.GeometryError`, a
+//! `ValueError`.
 
 use std::fmt;
 
@@ -19,10 +21,23 @@ pub enum GeometryError {
         batch: usize,
         point: usize,
     },
-    /// A count or index outside its allowed range.
+    /// A count, index or option outside its allowed values.
     OutOfRange { arg: &'static str, message: String },
-    /// Two arguments whose sizes do not agree.
-    Mismatch { message: String },
+    /// An array whose shape is not the one the call needs (`expected` as in NumPy, "(B, N, 3)").
+    Shape {
+        arg: &'static str,
+        expected: &'static str,
+        got: Vec<usize>,
+    },
+    /// An array that is not C-contiguous (the bindings borrow arrays without copying them).
+    NotContiguous { arg: &'static str },
+    /// Two arguments whose sizes (`what`: "batch size", ...) do not agree.
+    Mismatch {
+        arg: &'static str,
+        other: &'static str,
+        what: &'static str,
+        sizes: (usize, usize),
+    },
 }
 
 impl GeometryError {
@@ -30,6 +45,17 @@ impl GeometryError {
         GeometryError::OutOfRange {
             arg,
             message: message.into(),
+        }
+    }
+}
+
+/// A shape written as NumPy writes it: `(2, 5)`, `(3,)`, `()`.
+fn numpy_shape(shape: &[usize]) -> String {
+    match shape {
+        [one] => format!("({one},)"),
+        _ => {
+            let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
+            format!("({})", dims.join(", "))
         }
     }
 }
@@ -50,7 +76,23 @@ impl fmt::Display for GeometryError {
                  point {point}): squared distances would overflow float32; scale the cloud down"
             ),
             GeometryError::OutOfRange { arg, message } => write!(f, "{arg} {message}"),
-            GeometryError::Mismatch { message } => write!(f, "{message}"),
+            GeometryError::Shape { arg, expected, got } => {
+                write!(
+                    f,
+                    "{arg} must have shape {expected}, got {}",
+                    numpy_shape(got)
+                )
+            }
+            GeometryError::NotContiguous { arg } => write!(f, "{arg} must be C-contiguous"),
+            GeometryError::Mismatch {
+                arg,
+                other,
+                what,
+                sizes: (a, b),
+            } => write!(
+                f,
+                "{arg} and {other} must have the same {what}, got {a} and {b}"
+            ),
         }
     }
 }
@@ -83,4 +125,40 @@ pub fn check_finite<T: Copy + Into<f64>>(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn messages_name_the_argument_and_numpy_shapes() {
+        let shape = |got: Vec<usize>| GeometryError::Shape {
+            arg: "points",
+            expected: "(B, N, 3)",
+            got,
+        };
+        assert_eq!(
+            shape(vec![2, 5, 4]).to_string(),
+            "points must have shape (B, N, 3), got (2, 5, 4)"
+        );
+        assert_eq!(
+            shape(vec![7]).to_string(),
+            "points must have shape (B, N, 3), got (7,)"
+        );
+        assert_eq!(
+            GeometryError::NotContiguous { arg: "viewpoint" }.to_string(),
+            "viewpoint must be C-contiguous"
+        );
+        let mismatch = GeometryError::Mismatch {
+            arg: "pred",
+            other: "gt",
+            what: "batch size",
+            sizes: (4, 3),
+        };
+        assert_eq!(
+            mismatch.to_string(),
+            "pred and gt must have the same batch size, got 4 and 3"
+        );
+    }
 }
