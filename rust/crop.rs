@@ -3,9 +3,10 @@
 //! A crop removes the points nearest a viewpoint (the authors' five centres are
 //! [`VIEWPOINTS`]), either a fixed number of them or all within a radius. Distances are computed
 //! in float64 from the input coordinates; ties go to the lowest index. Both outputs keep the
-//! input's relative point order.
+//! input's relative point order. A cloud may hold at most [`MAX_POINTS`](crate::error::MAX_POINTS)
+//! points (candidate lists and histogram counts are `u32`); every public function here checks it.
 
-use crate::error::{check_finite, GeometryError, Result, MAX_COORDINATE};
+use crate::error::{check_finite, check_point_count, GeometryError, Result, MAX_COORDINATE};
 
 /// The authors' five crop centres (PF-Net code, `choice` in `Train_PFNet.py`).
 pub const VIEWPOINTS: [[f64; 3]; 5] = [
@@ -60,9 +61,7 @@ pub fn crop_mask<T: Copy + Into<f64>>(
     viewpoint: [f64; 3],
     size: CropSize,
 ) -> Result<Vec<bool>> {
-    if points.is_empty() {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+    check_point_count("points", points.len())?;
     check_viewpoint(&viewpoint)?;
     match size {
         CropSize::Count(n_missing) => {
@@ -184,9 +183,7 @@ pub fn crop_count_into<T: Copy + Into<f64>>(
     kept: &mut [T],
     removed: &mut [T],
 ) -> Result<()> {
-    if points.is_empty() {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+    check_point_count("points", points.len())?;
     check_viewpoint(&viewpoint)?;
     check_count(n_missing, points.len())?;
     let keys = cloud_keys(points, viewpoint)?;
@@ -293,9 +290,7 @@ pub fn multi_region_mask<T: Copy + Into<f64>>(
     viewpoints: &[[f64; 3]],
     n_missing: usize,
 ) -> Result<Vec<bool>> {
-    if points.is_empty() {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+    check_point_count("points", points.len())?;
     if viewpoints.is_empty() {
         return Err(GeometryError::Empty { arg: "viewpoints" });
     }

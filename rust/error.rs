@@ -9,6 +9,8 @@ use std::fmt;
 pub enum GeometryError {
     /// A cloud with no points.
     Empty { arg: &'static str },
+    /// A cloud with more than [`MAX_POINTS`] points.
+    TooManyPoints { arg: &'static str, points: usize },
     /// A coordinate that is NaN or infinite.
     NonFinite {
         arg: &'static str,
@@ -66,6 +68,11 @@ impl fmt::Display for GeometryError {
             GeometryError::Empty { arg } => {
                 write!(f, "{arg} is empty: a cloud needs at least one point")
             }
+            GeometryError::TooManyPoints { arg, points } => write!(
+                f,
+                "{arg} has {points} points per cloud, more than the {MAX_POINTS} (2^32 - 1) \
+                 that one cloud may hold: point indices are 32-bit"
+            ),
             GeometryError::NonFinite { arg, batch, point } => write!(
                 f,
                 "{arg} contains NaN or infinite coordinates (first at batch {batch}, point {point})"
@@ -107,6 +114,25 @@ pub type Result<T> = std::result::Result<T, GeometryError>;
 /// meaningless sample (a cloud ×1e20 made farthest point sampling return index 0 four times).
 pub const MAX_COORDINATE: f64 = 1e18;
 
+/// The most points one cloud may hold, `u32::MAX` (4,294,967,295). The kernels store point
+/// indices and counts as `u32` (half the memory of `usize`): the sampling tree's order and node
+/// ranges, the nearest-neighbour tree's items (kiddo's tree panics beyond `u32`), the crop's
+/// candidate lists and histogram. Every
+/// public entry point checks its clouds against this bound ([`check_point_count`]) before any of
+/// those casts. A batch may hold any number of clouds.
+pub const MAX_POINTS: usize = u32::MAX as usize;
+
+/// Reject a cloud of `points` points that is empty or larger than [`MAX_POINTS`].
+pub fn check_point_count(arg: &'static str, points: usize) -> Result<()> {
+    if points == 0 {
+        return Err(GeometryError::Empty { arg });
+    }
+    if points > MAX_POINTS {
+        return Err(GeometryError::TooManyPoints { arg, points });
+    }
+    Ok(())
+}
+
 /// Reject clouds with NaN, infinite or huge coordinates; `batch` is only used in the message.
 pub fn check_finite<T: Copy + Into<f64>>(
     arg: &'static str,
@@ -130,6 +156,40 @@ pub fn check_finite<T: Copy + Into<f64>>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn point_counts_from_one_to_u32_max_are_accepted() {
+        for n in [1, 2, 1 << 31, MAX_POINTS - 1, MAX_POINTS] {
+            assert_eq!(check_point_count("points", n), Ok(()), "n={n}");
+        }
+        assert_eq!(MAX_POINTS, 4_294_967_295);
+    }
+
+    #[test]
+    #[cfg(target_pointer_width = "64")]
+    fn empty_and_over_u32_clouds_are_refused_with_their_size() {
+        assert_eq!(
+            check_point_count("gt", 0),
+            Err(GeometryError::Empty { arg: "gt" })
+        );
+        // No cloud is allocated: the check sees only the length.
+        for n in [MAX_POINTS + 1, 1 << 33, usize::MAX] {
+            let err = check_point_count("reference", n).unwrap_err();
+            assert_eq!(
+                err,
+                GeometryError::TooManyPoints {
+                    arg: "reference",
+                    points: n
+                }
+            );
+            let message = err.to_string();
+            assert!(
+                message.starts_with(&format!("reference has {n} points")),
+                "{message}"
+            );
+            assert!(message.contains("4294967295 (2^32 - 1)"), "{message}");
+        }
+    }
 
     #[test]
     fn messages_name_the_argument_and_numpy_shapes() {

@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use crate::chamfer::{chamfer, chamfer_batch};
 use crate::crop::{self, CropSize, Directions};
-use crate::error::{check_finite, GeometryError};
+use crate::error::{check_finite, check_point_count, GeometryError, MAX_POINTS};
 use crate::fps;
 use crate::nn::{validate_pair, NearestNeighborIndex};
 
@@ -238,9 +238,7 @@ where
 
 /// Check the sizes of a count crop before its output buffers are sized by them.
 fn check_n_missing(points_shape: &[usize], n_missing: usize) -> Result<(), GeometryError> {
-    if points_shape[1] == 0 {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+    check_point_count("points", points_shape[1])?;
     crop::check_count(n_missing, points_shape[1])
 }
 
@@ -383,6 +381,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(random_centres, m)?)?;
     m.add("MAX_REGIONS", crop::MAX_REGIONS)?;
     m.add("MAX_COORDINATE", crate::error::MAX_COORDINATE)?;
+    m.add("MAX_POINTS", MAX_POINTS)?;
     m.add(
         "GeometryError",
         m.py().get_type::<exception::GeometryError>(),

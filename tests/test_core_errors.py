@@ -250,3 +250,6 @@ def test_geometry_errors_survive_pickling() -> None:
     copy = pickle.loads(pickle.dumps(raised.value))
     assert type(copy) is GeometryError and copy.args == raised.value.args
 
+
+def test_the_point_limit_is_u32() -> None:
+    assert _core.MAX_POINTS == 2**32 - 1

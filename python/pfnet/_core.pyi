@@ -6,6 +6,7 @@ from numpy.typing import NDArray
 VIEWPOINTS: NDArray[np.float64]
 MAX_REGIONS: int
 MAX_COORDINATE: float
+MAX_POINTS: int
 
 class GeometryError(ValueError):
     """Every error the core raises (shapes, layouts, sizes, counts, coordinates); its public

@@ -3,7 +3,8 @@
 Every function accepts float32 or float64 arrays of any memory layout (integer arrays are
 converted to float64), shaped ``(N, 3)`` for one cloud or ``(B, N, 3)`` for a batch, and
 releases the GIL while it computes; batches run in parallel across cores. Bad input raises
-``ValueError`` (shapes, sizes, NaN/inf) or ``TypeError`` (dtypes) naming the argument.
+``ValueError`` (shapes, sizes, NaN/inf) or ``TypeError`` (dtypes) naming the argument. A cloud
+may hold at most ``MAX_POINTS`` (2**32 - 1) points.
 
 Precision: sampling and nearest neighbours work on float32 coordinates (float64 input is
 rounded to float32 first); Chamfer terms are accumulated in float64; crops rank distances in
@@ -19,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pfnet import _core
+from pfnet.errors import GeometryError
 
 __all__ = [
     "VIEWPOINTS",
@@ -39,6 +41,8 @@ MAX_REGIONS: int = _core.MAX_REGIONS
 """The most regions :func:`random_crop` may remove at once."""
 MAX_COORDINATE: float = _core.MAX_COORDINATE
 """The largest coordinate magnitude the kernels accept (squared distances stay finite)."""
+MAX_POINTS: int = _core.MAX_POINTS
+"""The most points one cloud may hold, 2**32 - 1: the core stores point indices as 32 bits."""
 
 
 def _as_cloud(
@@ -54,6 +58,12 @@ def _as_cloud(
         raise ValueError(f"{name} must have shape (N, 3) or (B, N, 3), got {array.shape}")
     if array.shape[-2] == 0:
         raise ValueError(f"{name} is empty: shape {array.shape}, a cloud needs at least one point")
+    if array.shape[-2] > MAX_POINTS:
+        # Checked before the conversions below, which could copy the whole array first.
+        raise GeometryError(
+            f"{name} has {array.shape[-2]} points per cloud (shape {array.shape}), more than the "
+            f"{MAX_POINTS} (2^32 - 1) that one cloud may hold: point indices are 32-bit"
+        )
     batched = array.ndim == 3
     if array.dtype.type not in dtypes:
         array = array.astype(dtypes[0] if array.dtype.kind == "f" else np.float64)
