@@ -172,8 +172,10 @@ def test_fps_property_matches_naive(points, data):
     ],
 )
 def test_fps_errors(kwargs, error, match):
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=match) as raised:
         g.farthest_point_sample(**kwargs)
+    # bad values raise pfnet's own ValueError subclass; bad types stay TypeError
+    assert isinstance(raised.value, GeometryError) == (error is ValueError)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -415,8 +417,9 @@ def test_random_crop_is_seeded_and_uses_the_viewpoints():
     ],
 )
 def test_crop_errors(call, error, match):
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=match) as raised:
         call()
+    assert isinstance(raised.value, GeometryError) == (error is ValueError)
 
 
 def test_clouds_over_the_u32_limit_are_refused_before_any_copy():
