@@ -92,12 +92,16 @@ fn rows_of_three<'a, T: Element>(
             got: shape.to_vec(),
         });
     }
+    if n == 0 {
+        // Refused before a list of B empty clouds is built: an array of no values may claim any
+        // B (np.zeros((2**40, 0, 3)) made the list's allocation abort the process).
+        return match shape[0] {
+            0 => Ok(Vec::new()),
+            _ => Err(GeometryError::Empty { arg }),
+        };
+    }
     let (points, _) = c_order(arg, array)?.as_chunks::<3>();
-    Ok(if n == 0 {
-        vec![&points[0..0]; shape[0]]
-    } else {
-        points.chunks(n).collect()
-    })
+    Ok(points.chunks(n).collect())
 }
 
 fn check_batches(
@@ -358,7 +362,17 @@ fn random_centres<'py>(
     let directions: Directions = directions.parse()?;
     // Checked here too: a batch of zero clouds never reaches `crop::random_centres`.
     crop::check_region_count(n_regions)?;
-    let mut flat = Vec::with_capacity(batch.saturating_mul(n_regions * 3));
+    // `batch` is any integer the caller gives: refuse what cannot be allocated instead of
+    // letting the allocation panic (capacity overflow) or abort the process.
+    let mut flat = Vec::new();
+    let size = batch.checked_mul(n_regions * 3);
+    if size.is_none_or(|size| flat.try_reserve_exact(size).is_err()) {
+        return Err(GeometryError::out_of_range(
+            "batch",
+            format!("is too large: {batch} × {n_regions} centres do not fit in memory"),
+        )
+        .into());
+    }
     for stream in 0..batch {
         let centres = crop::random_centres(seed, stream as u64, n_regions, directions)?;
         flat.extend(centres.into_iter().flatten());

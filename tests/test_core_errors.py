@@ -14,6 +14,7 @@ import pytest
 import pfnet.errors
 from pfnet import _core
 from pfnet.errors import GeometryError
+from pfnet.geometry import random_crop
 
 F32 = np.float32
 
@@ -49,6 +50,10 @@ CASES = {
     "fps empty": (
         lambda: _core.farthest_point_sample(np.zeros((1, 0, 3), F32), 1, 0),
         r"^points is empty: a cloud needs at least one point$",
+    ),
+    "fps many empty clouds": (
+        lambda: _core.farthest_point_sample(np.zeros((2**40, 0, 3), F32), 1, 0),
+        r"^points is empty",
     ),
     "fps n_samples": (
         lambda: _core.farthest_point_sample(_cloud(5), 6, 0),
@@ -90,6 +95,10 @@ CASES = {
     "nn empty reference": (
         lambda: _core.nearest_neighbors(_cloud(4), np.zeros((1, 0, 3), F32)),
         r"^reference is empty",
+    ),
+    "nn many empty clouds": (
+        lambda: _core.nearest_neighbors(np.zeros((2**59, 0, 3), F32), np.zeros((2**59, 0, 3), F32)),
+        r"^query is empty",
     ),
     "nn infinite": (
         lambda: _core.nearest_neighbors(_cloud(4), _with(_cloud(6), (0, 5, 1), np.inf)),
@@ -219,6 +228,14 @@ CASES = {
         lambda: _core.random_centres(0, 0, 0, "sphere"),
         r"^n_regions must be in \[1, 65536\], got 0$",
     ),
+    "centres huge batch": (
+        lambda: _core.random_centres(0, 2**60, 1, "sphere"),
+        r"^batch is too large: 1152921504606846976 × 1 centres do not fit in memory$",
+    ),
+    "centres impossible batch": (
+        lambda: _core.random_centres(0, 2**40, 5, "viewpoints"),
+        r"^batch is too large",
+    ),
     "centres six viewpoints": (
         lambda: _core.random_centres(0, 1, 6, "viewpoints"),
         r"^n_regions must be at most 5 with directions='viewpoints', got 6$",
@@ -253,3 +270,11 @@ def test_geometry_errors_survive_pickling() -> None:
 
 def test_the_point_limit_is_u32() -> None:
     assert _core.MAX_POINTS == 2**32 - 1
+
+
+def test_a_huge_broadcast_batch_is_refused_not_allocated() -> None:
+    # A read-only view claiming 2^40 clouds: the crop centres for it cannot exist, and the core
+    # says so instead of aborting the process on the allocation.
+    batch = np.broadcast_to(np.zeros(3, F32), (2**40, 16, 3))
+    with pytest.raises(GeometryError, match=r"^batch is too large: 1099511627776 × 1 centres"):
+        random_crop(batch, 4, seed=0)
