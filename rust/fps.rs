@@ -29,18 +29,14 @@ pub fn farthest_point_sample(
     n_samples: usize,
     start_index: usize,
 ) -> Result<Vec<usize>> {
-    validate(points, n_samples, start_index)?;
+    check_sizes(points.len(), n_samples, start_index)?;
     check_finite("points", 0, points)?;
     Ok(sample_unchecked(points, n_samples, start_index))
 }
 
-pub(crate) fn validate(points: &[[f32; 3]], n_samples: usize, start_index: usize) -> Result<()> {
-    check_sizes(points.len(), n_samples, start_index)
-}
-
-/// The checks of [`validate`] that need only the number of points `n` (so a test can pass a
-/// number no cloud in memory has).
-fn check_sizes(n: usize, n_samples: usize, start_index: usize) -> Result<()> {
+/// The size checks of IFPS on a cloud of `n` points. They need only `n`, so the bindings check a
+/// batch once and a test can pass a number no cloud in memory has.
+pub(crate) fn check_sizes(n: usize, n_samples: usize, start_index: usize) -> Result<()> {
     check_point_count("points", n)?;
     if n_samples == 0 || n_samples > n {
         return Err(GeometryError::out_of_range(
@@ -189,7 +185,7 @@ pub(crate) fn sample_flat(points: &[[f32; 3]], n_samples: usize, start_index: us
 
 /// A KD-tree over the cloud whose nodes cache the largest min-distance below them. Indices and
 /// node ranges are `u32`: the cloud holds at most [`crate::error::MAX_POINTS`] points (checked by
-/// [`validate`]).
+/// [`check_sizes`]).
 pub(crate) struct SamplingTree {
     // Coordinates in tree order (each leaf a contiguous run, sorted by original index).
     xs: Vec<f32>,

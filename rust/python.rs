@@ -131,9 +131,11 @@ fn farthest_point_sample<'py>(
 ) -> PyResult<Bound<'py, PyArray2<i64>>> {
     let batch = clouds("points", &points)?;
     let b = batch.len();
+    // Checked once for all clouds, and for a batch of none too: the output is (B, n_samples),
+    // and a batch of no clouds with a huge n_samples made a shape that crashed numpy.
+    fps::check_sizes(points.shape()[1], n_samples, start_index)?;
     let flat: Vec<i64> = py.detach(|| -> Result<Vec<i64>, GeometryError> {
         for (i, cloud) in batch.iter().enumerate() {
-            fps::validate(cloud, n_samples, start_index)?;
             check_finite("points", i, cloud)?;
         }
         // One cloud runs on one thread: splitting one IFPS per iteration loses (DESIGN.md §6).

@@ -67,6 +67,14 @@ CASES = {
         lambda: _core.farthest_point_sample(_cloud(5), 2, 5),
         r"^start_index must be in 0\.\.5 \(the number of points\), got 5$",
     ),
+    "fps no clouds, huge n_samples": (
+        lambda: _core.farthest_point_sample(np.zeros((0, 4, 3), F32), 2**62, 0),
+        r"^n_samples must be in 1\.\.=4 \(the number of points\), got 4611686018427387904$",
+    ),
+    "fps no clouds, no points": (
+        lambda: _core.farthest_point_sample(np.zeros((0, 0, 3), F32), 1, 0),
+        r"^points is empty",
+    ),
     "fps NaN": (
         lambda: _core.farthest_point_sample(_with(_cloud(5, 2), (1, 2, 0), np.nan), 2, 0),
         r"^points contains NaN or infinite coordinates \(first at batch 1, point 2\)$",
