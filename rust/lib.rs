@@ -2,8 +2,9 @@
 //! Chamfer metrics, and viewpoint cropping. The modules are plain Rust (no Python types); the
 //! `python` feature adds the one binding module that exposes them as `pfnet._core`.
 //!
-//! Every entry point returns [`GeometryError`] on bad input, never panics on it; a cloud may hold
-//! at most [`MAX_POINTS`] (2³² − 1) points and coordinates up to ±[`MAX_COORDINATE`].
+//! Every entry point checks its input and returns [`GeometryError`] instead of panicking
+//! ([`NearestNeighborIndex::new`] expects a checked cloud); a cloud may hold at most
+//! [`MAX_POINTS`] (2³² − 1) points, with coordinates up to ±[`MAX_COORDINATE`].
 
 pub mod chamfer;
 pub mod crop;
