@@ -21,7 +21,8 @@ fn directed_parallel(from: &[[f32; 3]], to: &NearestNeighborIndex<'_>) -> f64 {
 }
 
 /// `(pred_to_gt, gt_to_pred)`: mean squared distance from each prediction point to the ground
-/// truth, and the reverse. Uses all cores for large clouds.
+/// truth, and the reverse. Uses all cores for large clouds. Each cloud may hold at most
+/// [`MAX_POINTS`](crate::error::MAX_POINTS) points.
 pub fn chamfer(pred: &[[f32; 3]], gt: &[[f32; 3]]) -> Result<(f64, f64)> {
     validate_pair("pred", pred, "gt", gt, 0)?;
     let large = pred.len() + gt.len() >= 8192;

@@ -3,9 +3,10 @@
 //! A crop removes the points nearest a viewpoint (the authors' five centres are
 //! [`VIEWPOINTS`]), either a fixed number of them or all within a radius. Distances are computed
 //! in float64 from the input coordinates; ties go to the lowest index. Both outputs keep the
-//! input's relative point order.
+//! input's relative point order. A cloud may hold at most [`MAX_POINTS`](crate::error::MAX_POINTS)
+//! points (candidate lists and histogram counts are `u32`); every public function here checks it.
 
-use crate::error::{check_finite, GeometryError, Result, MAX_COORDINATE};
+use crate::error::{check_finite, check_point_count, GeometryError, Result, MAX_COORDINATE};
 
 /// The authors' five crop centres (PF-Net code, `choice` in `Train_PFNet.py`).
 pub const VIEWPOINTS: [[f64; 3]; 5] = [
@@ -60,9 +61,7 @@ pub fn crop_mask<T: Copy + Into<f64>>(
     viewpoint: [f64; 3],
     size: CropSize,
 ) -> Result<Vec<bool>> {
-    if points.is_empty() {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+    check_point_count("points", points.len())?;
     check_viewpoint(&viewpoint)?;
     match size {
         CropSize::Count(n_missing) => {
@@ -184,9 +183,7 @@ pub fn crop_count_into<T: Copy + Into<f64>>(
     kept: &mut [T],
     removed: &mut [T],
 ) -> Result<()> {
-    if points.is_empty() {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+    check_point_count("points", points.len())?;
     check_viewpoint(&viewpoint)?;
     check_count(n_missing, points.len())?;
     let keys = cloud_keys(points, viewpoint)?;
@@ -293,9 +290,7 @@ pub fn multi_region_mask<T: Copy + Into<f64>>(
     viewpoints: &[[f64; 3]],
     n_missing: usize,
 ) -> Result<Vec<bool>> {
-    if points.is_empty() {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+    check_point_count("points", points.len())?;
     if viewpoints.is_empty() {
         return Err(GeometryError::Empty { arg: "viewpoints" });
     }
@@ -332,6 +327,22 @@ pub enum Directions {
     Sphere,
 }
 
+impl std::str::FromStr for Directions {
+    type Err = GeometryError;
+
+    /// `"viewpoints"` or `"sphere"`, as `pfnet.geometry.random_crop` spells them.
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "viewpoints" => Ok(Directions::Viewpoints),
+            "sphere" => Ok(Directions::Sphere),
+            other => Err(GeometryError::out_of_range(
+                "directions",
+                format!("must be 'viewpoints' or 'sphere', got {other:?}"),
+            )),
+        }
+    }
+}
+
 /// SplitMix64: a tiny, well-mixed generator, so seeded crops are the same on every platform.
 struct SplitMix64(u64);
 
@@ -359,6 +370,17 @@ impl SplitMix64 {
 /// on the allocation before this existed).
 pub const MAX_REGIONS: usize = 1 << 16;
 
+/// Reject a region count outside `[1, MAX_REGIONS]`.
+pub fn check_region_count(n_regions: usize) -> Result<()> {
+    if n_regions == 0 || n_regions > MAX_REGIONS {
+        return Err(GeometryError::out_of_range(
+            "n_regions",
+            format!("must be in [1, {MAX_REGIONS}], got {n_regions}"),
+        ));
+    }
+    Ok(())
+}
+
 /// The region centres a seeded random crop uses (`stream` separates the clouds of a batch).
 pub fn random_centres(
     seed: u64,
@@ -366,12 +388,7 @@ pub fn random_centres(
     n_regions: usize,
     directions: Directions,
 ) -> Result<Vec<[f64; 3]>> {
-    if n_regions == 0 || n_regions > MAX_REGIONS {
-        return Err(GeometryError::out_of_range(
-            "n_regions",
-            format!("must be in [1, {MAX_REGIONS}], got {n_regions}"),
-        ));
-    }
+    check_region_count(n_regions)?;
     let mut rng = SplitMix64(seed ^ stream.wrapping_mul(0xD1B5_4A32_D192_ED03));
     match directions {
         Directions::Viewpoints => {
@@ -514,6 +531,32 @@ mod tests {
             assert!((norm - 1.0).abs() < 1e-12);
         }
         assert!(random_centres(1, 0, 6, Directions::Viewpoints).is_err());
+        assert!(random_centres(1, 0, 0, Directions::Sphere).is_err());
+        assert!(random_centres(1, 0, MAX_REGIONS + 1, Directions::Sphere).is_err());
+    }
+
+    #[test]
+    fn directions_parse_their_python_names() {
+        assert_eq!("sphere".parse(), Ok(Directions::Sphere));
+        assert_eq!("viewpoints".parse(), Ok(Directions::Viewpoints));
+        let err = "up".parse::<Directions>().unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "directions must be 'viewpoints' or 'sphere', got \"up\""
+        );
+    }
+
+    #[test]
+    fn empty_clouds_are_refused_by_every_crop() {
+        let empty: [[f32; 3]; 0] = [];
+        let expected = Err(GeometryError::Empty { arg: "points" });
+        assert_eq!(crop_mask(&empty, [0.0; 3], CropSize::Count(0)), expected);
+        assert_eq!(crop_mask(&empty, [0.0; 3], CropSize::Radius(1.0)), expected);
+        assert_eq!(multi_region_mask(&empty, &[[0.0; 3]], 0), expected);
+        assert_eq!(
+            crop_count_into(&empty, [0.0; 3], 0, &mut [], &mut []),
+            Err(GeometryError::Empty { arg: "points" })
+        );
     }
 
     #[test]

@@ -12,7 +12,7 @@
 //! float32 operations in the same order as the point distances, and rounding is monotone, so the
 //! bound never exceeds any point's computed distance and the pruning is exact, not approximate.
 
-use crate::error::{check_finite, GeometryError, Result};
+use crate::error::{check_finite, check_point_count, GeometryError, Result};
 
 /// Leaf size of the sampling tree: large leaves vectorise well and keep the traversal short;
 /// measured with `examples/fps_tuning.rs` (256 is within a few % of the best at 2k–100k points).
@@ -22,21 +22,22 @@ const LEAF_SIZE: usize = 256;
 const TREE_MIN_POINTS: usize = 2 * LEAF_SIZE;
 
 /// Exact IFPS of one cloud; returns `n_samples` indices into `points`, the first `start_index`.
+///
+/// `points` may hold at most [`crate::error::MAX_POINTS`] points (the tree stores `u32` indices).
 pub fn farthest_point_sample(
     points: &[[f32; 3]],
     n_samples: usize,
     start_index: usize,
 ) -> Result<Vec<usize>> {
-    validate(points, n_samples, start_index)?;
+    check_sizes(points.len(), n_samples, start_index)?;
     check_finite("points", 0, points)?;
     Ok(sample_unchecked(points, n_samples, start_index))
 }
 
-pub(crate) fn validate(points: &[[f32; 3]], n_samples: usize, start_index: usize) -> Result<()> {
-    let n = points.len();
-    if n == 0 {
-        return Err(GeometryError::Empty { arg: "points" });
-    }
+/// The size checks of IFPS on a cloud of `n` points. They need only `n`, so the bindings check a
+/// batch once and a test can pass a number no cloud in memory has.
+pub(crate) fn check_sizes(n: usize, n_samples: usize, start_index: usize) -> Result<()> {
+    check_point_count("points", n)?;
     if n_samples == 0 || n_samples > n {
         return Err(GeometryError::out_of_range(
             "n_samples",
@@ -182,7 +183,9 @@ pub(crate) fn sample_flat(points: &[[f32; 3]], n_samples: usize, start_index: us
     selected
 }
 
-/// A KD-tree over the cloud whose nodes cache the largest min-distance below them.
+/// A KD-tree over the cloud whose nodes cache the largest min-distance below them. Indices and
+/// node ranges are `u32`: the cloud holds at most [`crate::error::MAX_POINTS`] points (checked by
+/// [`check_sizes`]).
 pub(crate) struct SamplingTree {
     // Coordinates in tree order (each leaf a contiguous run, sorted by original index).
     xs: Vec<f32>,
@@ -517,5 +520,19 @@ mod tests {
         bad[4][1] = f32::NAN;
         let err = farthest_point_sample(&bad, 3, 0).unwrap_err();
         assert!(err.to_string().contains("point 4"), "{err}");
+    }
+
+    #[test]
+    #[cfg(target_pointer_width = "64")]
+    fn clouds_beyond_u32_indices_are_refused_before_sampling() {
+        let max = crate::error::MAX_POINTS;
+        assert_eq!(check_sizes(max, max, max - 1), Ok(()));
+        assert_eq!(
+            check_sizes(max + 1, 1, 0),
+            Err(GeometryError::TooManyPoints {
+                arg: "points",
+                points: max + 1
+            })
+        );
     }
 }

@@ -1,6 +1,10 @@
 //! pfnet's geometry core: exact iterative farthest point sampling, KD-tree nearest neighbours and
 //! Chamfer metrics, and viewpoint cropping. The modules are plain Rust (no Python types); the
 //! `python` feature adds the one binding module that exposes them as `pfnet._core`.
+//!
+//! Every entry point checks its input and returns [`GeometryError`] instead of panicking
+//! ([`NearestNeighborIndex::new`] expects a checked cloud); a cloud may hold at most
+//! [`MAX_POINTS`] (2³² − 1) points, with coordinates up to ±[`MAX_COORDINATE`].
 
 pub mod chamfer;
 pub mod crop;
@@ -26,6 +30,6 @@ pub use chamfer::{chamfer, chamfer_batch};
 pub use crop::{
     crop_mask, multi_region_mask, random_centres, split_by_mask, CropSize, Directions, VIEWPOINTS,
 };
-pub use error::GeometryError;
+pub use error::{GeometryError, MAX_COORDINATE, MAX_POINTS};
 pub use fps::{farthest_point_sample, farthest_point_sample_naive};
 pub use nn::{nearest_neighbors, nearest_neighbors_naive, NearestNeighborIndex};

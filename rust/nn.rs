@@ -8,7 +8,7 @@ use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
 use rayon::prelude::*;
 
-use crate::error::{check_finite, GeometryError, Result};
+use crate::error::{check_finite, check_point_count, Result};
 
 /// Below this many queries a single thread answers faster than a split across the pool.
 const PARALLEL_MIN_QUERIES: usize = 4096;
@@ -63,7 +63,9 @@ fn distinct_points(reference: &[[f32; 3]]) -> Option<(Vec<[f32; 3]>, Vec<u32>)> 
 }
 
 impl<'a> NearestNeighborIndex<'a> {
-    /// Build the tree; `reference` must be non-empty and finite (see [`nearest_neighbors`]).
+    /// Build the tree; `reference` must be non-empty, finite and hold at most
+    /// [`MAX_POINTS`](crate::error::MAX_POINTS) points, as [`nearest_neighbors`] checks (indices
+    /// are `u32`; kiddo's tree panics beyond that).
     pub fn new(reference: &'a [[f32; 3]]) -> Self {
         match distinct_points(reference) {
             None => NearestNeighborIndex {
@@ -127,7 +129,8 @@ impl<'a> NearestNeighborIndex<'a> {
     }
 }
 
-/// Check a (query, reference) pair of clouds for emptiness and non-finite values.
+/// Check a (query, reference) pair of clouds for emptiness, more than
+/// [`MAX_POINTS`](crate::error::MAX_POINTS) points and non-finite values.
 pub(crate) fn validate_pair(
     query_arg: &'static str,
     query: &[[f32; 3]],
@@ -135,17 +138,14 @@ pub(crate) fn validate_pair(
     reference: &[[f32; 3]],
     batch: usize,
 ) -> Result<()> {
-    if query.is_empty() {
-        return Err(GeometryError::Empty { arg: query_arg });
-    }
-    if reference.is_empty() {
-        return Err(GeometryError::Empty { arg: reference_arg });
-    }
+    check_point_count(query_arg, query.len())?;
+    check_point_count(reference_arg, reference.len())?;
     check_finite(query_arg, batch, query)?;
     check_finite(reference_arg, batch, reference)
 }
 
 /// For every query point, the squared distance to and index of its nearest reference point.
+/// Each cloud may hold at most [`MAX_POINTS`](crate::error::MAX_POINTS) points.
 pub fn nearest_neighbors(
     query: &[[f32; 3]],
     reference: &[[f32; 3]],
@@ -178,6 +178,7 @@ pub fn nearest_neighbors_naive(query: &[[f32; 3]], reference: &[[f32; 3]]) -> (V
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::GeometryError;
     use rand::{rngs::StdRng, Rng, SeedableRng};
 
     fn cloud(n: usize, seed: u64, grid: bool) -> Vec<[f32; 3]> {

@@ -3,19 +3,21 @@
 //! The functions here take batched, C-contiguous arrays (`pfnet.geometry` reshapes, converts and
 //! checks shapes first, so its messages can name the user's shapes), borrow them without copying,
 //! release the GIL while the Rust core works, and hand results back without copying.
+//!
+//! Every error they raise is a [`GeometryError`] converted in one place, the `From` impl below,
+//! into the Python exception `pfnet.errors.GeometryError` (a `ValueError`).
 
 use numpy::ndarray::{Array1, Array2, Array3};
 use numpy::{
-    Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3,
-    PyUntypedArrayMethods,
+    Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray, PyReadonlyArray2,
+    PyReadonlyArray3, PyUntypedArrayMethods,
 };
-use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use rayon::prelude::*;
 
 use crate::chamfer::{chamfer, chamfer_batch};
 use crate::crop::{self, CropSize, Directions};
-use crate::error::{check_finite, GeometryError};
+use crate::error::{check_finite, check_point_count, GeometryError, MAX_POINTS};
 use crate::fps;
 use crate::nn::{validate_pair, NearestNeighborIndex};
 
@@ -24,9 +26,22 @@ type Pair<'py, A, B> = (Bound<'py, A>, Bound<'py, B>);
 type Split<'py, T> = Pair<'py, PyArray3<T>, PyArray3<T>>;
 type Cloud<'a> = &'a [[f32; 3]];
 
+mod exception {
+    // `__module__` is the public home, `pfnet.errors`, which re-exports the class: tracebacks
+    // print `pfnet.errors.GeometryError` and pickling (multiprocessing) finds the class there.
+    pyo3::create_exception!(
+        pfnet.errors,
+        GeometryError,
+        pyo3::exceptions::PyValueError,
+        "Bad input to pfnet's geometry core: a shape, size, count or coordinate it cannot use. \
+         A ValueError, so code that catches ValueError keeps working."
+    );
+}
+
+/// The single conversion of the core's errors into Python exceptions.
 impl From<GeometryError> for PyErr {
     fn from(err: GeometryError) -> PyErr {
-        PyValueError::new_err(err.to_string())
+        exception::GeometryError::new_err(err.to_string())
     }
 }
 
@@ -40,34 +55,68 @@ fn map_batch<I: Sync, R: Send>(items: &[I], f: impl Fn(usize, &I) -> R + Sync + 
     }
 }
 
+/// The values of a C-contiguous array, borrowed. `as_slice` alone also accepts Fortran order,
+/// whose values it would hand over transposed.
+fn c_order<'a, T: Element, D: numpy::ndarray::Dimension>(
+    arg: &'static str,
+    array: &'a PyReadonlyArray<'_, T, D>,
+) -> Result<&'a [T], GeometryError> {
+    if !array.is_c_contiguous() {
+        return Err(GeometryError::NotContiguous { arg });
+    }
+    array
+        .as_slice()
+        .map_err(|_| GeometryError::NotContiguous { arg })
+}
+
 /// The clouds of a (B, N, 3) array as B slices of points.
 fn clouds<'a, T: Element>(
     arg: &'static str,
     array: &'a PyReadonlyArray3<'_, T>,
-) -> PyResult<Vec<&'a [[T; 3]]>> {
+) -> Result<Vec<&'a [[T; 3]]>, GeometryError> {
+    rows_of_three(arg, "(B, N, 3)", array)
+}
+
+/// The B slices of 3-vectors of a C-contiguous array shaped `expected`, (B, _, 3).
+fn rows_of_three<'a, T: Element>(
+    arg: &'static str,
+    expected: &'static str,
+    array: &'a PyReadonlyArray3<'_, T>,
+) -> Result<Vec<&'a [[T; 3]]>, GeometryError> {
     let shape = array.shape();
     let n = shape[1];
     if shape[2] != 3 {
-        return Err(PyValueError::new_err(format!(
-            "{arg} must have shape (B, N, 3), got {shape:?}"
-        )));
+        return Err(GeometryError::Shape {
+            arg,
+            expected,
+            got: shape.to_vec(),
+        });
     }
-    let flat = array
-        .as_slice()
-        .map_err(|_| PyValueError::new_err(format!("{arg} must be C-contiguous")))?;
-    let (points, _) = flat.as_chunks::<3>();
-    Ok(if n == 0 {
-        vec![&points[0..0]; shape[0]]
-    } else {
-        points.chunks(n).collect()
-    })
+    if n == 0 {
+        // Refused before a list of B empty clouds is built: an array of no values may claim any
+        // B (np.zeros((2**40, 0, 3)) made the list's allocation abort the process).
+        return match shape[0] {
+            0 => Ok(Vec::new()),
+            _ => Err(GeometryError::Empty { arg }),
+        };
+    }
+    let (points, _) = c_order(arg, array)?.as_chunks::<3>();
+    Ok(points.chunks(n).collect())
 }
 
-fn check_batches(a: &str, na: usize, b: &str, nb: usize) -> PyResult<()> {
+fn check_batches(
+    arg: &'static str,
+    na: usize,
+    other: &'static str,
+    nb: usize,
+) -> Result<(), GeometryError> {
     if na != nb {
-        return Err(PyValueError::new_err(format!(
-            "{a} and {b} must have the same batch size, got {na} and {nb}"
-        )));
+        return Err(GeometryError::Mismatch {
+            arg,
+            other,
+            what: "batch size",
+            sizes: (na, nb),
+        });
     }
     Ok(())
 }
@@ -82,9 +131,11 @@ fn farthest_point_sample<'py>(
 ) -> PyResult<Bound<'py, PyArray2<i64>>> {
     let batch = clouds("points", &points)?;
     let b = batch.len();
+    // Checked once for all clouds, and for a batch of none too: the output is (B, n_samples),
+    // and a batch of no clouds with a huge n_samples made a shape that crashed numpy.
+    fps::check_sizes(points.shape()[1], n_samples, start_index)?;
     let flat: Vec<i64> = py.detach(|| -> Result<Vec<i64>, GeometryError> {
         for (i, cloud) in batch.iter().enumerate() {
-            fps::validate(cloud, n_samples, start_index)?;
             check_finite("points", i, cloud)?;
         }
         // One cloud runs on one thread: splitting one IFPS per iteration loses (DESIGN.md §6).
@@ -191,24 +242,28 @@ where
     Ok((partial.into_pyarray(py), missing.into_pyarray(py)))
 }
 
-fn check_n_missing(points_shape: &[usize], n_missing: usize) -> PyResult<()> {
-    if points_shape[1] == 0 {
-        return Err(GeometryError::Empty { arg: "points" }.into());
-    }
-    crop::check_count(n_missing, points_shape[1]).map_err(PyErr::from)
+/// Check the sizes of a count crop before its output buffers are sized by them.
+fn check_n_missing(points_shape: &[usize], n_missing: usize) -> Result<(), GeometryError> {
+    check_point_count("points", points_shape[1])?;
+    crop::check_count(n_missing, points_shape[1])
 }
 
-fn viewpoint_rows(viewpoints: &PyReadonlyArray2<'_, f64>, b: usize) -> PyResult<Vec<[f64; 3]>> {
+/// One viewpoint per cloud of a batch of `b`: a (b, 3) array.
+fn viewpoint_rows(
+    viewpoints: &PyReadonlyArray2<'_, f64>,
+    b: usize,
+) -> Result<Vec<[f64; 3]>, GeometryError> {
+    let arg = "viewpoint";
     let shape = viewpoints.shape();
-    if shape != [b, 3] {
-        return Err(PyValueError::new_err(format!(
-            "viewpoint must have shape (3,) or ({b}, 3) for a batch of {b}, got {shape:?}"
-        )));
+    if shape[1] != 3 {
+        return Err(GeometryError::Shape {
+            arg,
+            expected: "(B, 3)",
+            got: shape.to_vec(),
+        });
     }
-    let flat = viewpoints
-        .as_slice()
-        .map_err(|_| PyValueError::new_err("viewpoint must be C-contiguous"))?;
-    Ok(flat.as_chunks::<3>().0.to_vec())
+    check_batches("points", b, arg, shape[0])?;
+    Ok(c_order(arg, viewpoints)?.as_chunks::<3>().0.to_vec())
 }
 
 macro_rules! crop_functions {
@@ -237,10 +292,18 @@ macro_rules! crop_functions {
             viewpoint: [f64; 3],
             radius: f64,
         ) -> PyResult<Pair<'py, PyArray2<$t>, PyArray2<$t>>> {
-            let flat = points
-                .as_slice()
-                .map_err(|_| PyValueError::new_err("points must be C-contiguous"))?;
-            let cloud = flat.as_chunks::<3>().0;
+            let shape = points.shape();
+            if shape[1] != 3 {
+                let got = shape.to_vec();
+                let expected = "(N, 3)";
+                return Err(GeometryError::Shape {
+                    arg: "points",
+                    expected,
+                    got,
+                }
+                .into());
+            }
+            let cloud = c_order("points", &points)?.as_chunks::<3>().0;
             let (partial, missing) = py.detach(|| {
                 crop::crop_mask(cloud, viewpoint, CropSize::Radius(radius))
                     .map(|mask| crop::split_by_mask(cloud, &mask))
@@ -263,7 +326,7 @@ macro_rules! crop_functions {
             n_missing: usize,
         ) -> PyResult<Split<'py, $t>> {
             check_n_missing(points.shape(), n_missing)?;
-            let centres = clouds("viewpoints", &viewpoints)?;
+            let centres = rows_of_three("viewpoints", "(B, K, 3)", &viewpoints)?;
             check_batches("points", points.shape()[0], "viewpoints", centres.len())?;
             crop_batch(py, &points, n_missing, |i, cloud, kept, removed| {
                 let mask = crop::multi_region_mask(cloud, centres[i], n_missing)
@@ -298,23 +361,20 @@ fn random_centres<'py>(
     n_regions: usize,
     directions: &str,
 ) -> PyResult<Bound<'py, PyArray3<f64>>> {
-    let directions = match directions {
-        "viewpoints" => Directions::Viewpoints,
-        "sphere" => Directions::Sphere,
-        other => {
-            return Err(PyValueError::new_err(format!(
-                "directions must be 'viewpoints' or 'sphere', got {other:?}"
-            )))
-        }
-    };
-    if n_regions == 0 || n_regions > crop::MAX_REGIONS {
+    let directions: Directions = directions.parse()?;
+    // Checked here too: a batch of zero clouds never reaches `crop::random_centres`.
+    crop::check_region_count(n_regions)?;
+    // `batch` is any integer the caller gives: refuse what cannot be allocated instead of
+    // letting the allocation panic (capacity overflow) or abort the process.
+    let mut flat = Vec::new();
+    let size = batch.checked_mul(n_regions * 3);
+    if size.is_none_or(|size| flat.try_reserve_exact(size).is_err()) {
         return Err(GeometryError::out_of_range(
-            "n_regions",
-            format!("must be in [1, {}], got {n_regions}", crop::MAX_REGIONS),
+            "batch",
+            format!("is too large: {batch} × {n_regions} centres do not fit in memory"),
         )
         .into());
     }
-    let mut flat = Vec::with_capacity(batch.saturating_mul(n_regions * 3));
     for stream in 0..batch {
         let centres = crop::random_centres(seed, stream as u64, n_regions, directions)?;
         flat.extend(centres.into_iter().flatten());
@@ -337,6 +397,11 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(random_centres, m)?)?;
     m.add("MAX_REGIONS", crop::MAX_REGIONS)?;
     m.add("MAX_COORDINATE", crate::error::MAX_COORDINATE)?;
+    m.add("MAX_POINTS", MAX_POINTS)?;
+    m.add(
+        "GeometryError",
+        m.py().get_type::<exception::GeometryError>(),
+    )?;
     let viewpoints: Vec<f64> = crop::VIEWPOINTS.iter().flatten().copied().collect();
     m.add(
         "VIEWPOINTS",

@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from pfnet import geometry as g
+from pfnet.errors import GeometryError
 
 # ---------------------------------------------------------------- naive references
 
@@ -171,8 +172,10 @@ def test_fps_property_matches_naive(points, data):
     ],
 )
 def test_fps_errors(kwargs, error, match):
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=match) as raised:
         g.farthest_point_sample(**kwargs)
+    # bad values raise pfnet's own ValueError subclass; bad types stay TypeError
+    assert isinstance(raised.value, GeometryError) == (error is ValueError)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -414,8 +417,29 @@ def test_random_crop_is_seeded_and_uses_the_viewpoints():
     ],
 )
 def test_crop_errors(call, error, match):
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=match) as raised:
         call()
+    assert isinstance(raised.value, GeometryError) == (error is ValueError)
+
+
+def test_clouds_over_the_u32_limit_are_refused_before_any_copy():
+    # A read-only view of 2^32 copies of one point: nothing is allocated, and the check must
+    # come before the float32/C-order conversion that would copy it (48 GiB).
+    assert g.MAX_POINTS == 2**32 - 1
+    huge = np.broadcast_to(np.zeros(3, np.float32), (g.MAX_POINTS + 1, 3))
+    batch = np.broadcast_to(np.zeros(3, np.float64), (2, g.MAX_POINTS + 1, 3))
+    match = r"has 4294967296 points per cloud \(shape .*\), more than the 4294967295 \(2\^32 - 1\)"
+    for name, call in [
+        ("points", lambda: g.farthest_point_sample(huge, 1)),
+        ("points", lambda: g.farthest_point_sample(batch, 1)),
+        ("reference", lambda: g.nearest_neighbors(cloud(5), huge)),
+        ("gt", lambda: g.chamfer(cloud(5), huge)),
+        ("points", lambda: g.crop_by_viewpoint(huge, g.VIEWPOINTS[0], n_missing=1)),
+        ("points", lambda: g.crop_multi_region(batch, g.VIEWPOINTS[:2], 1)),
+        ("points", lambda: g.random_crop(huge, 1, seed=0)),
+    ]:
+        with pytest.raises(GeometryError, match=f"^{name} {match}"):
+            call()
 
 
 def test_no_rust_panic_escapes_on_odd_shapes():

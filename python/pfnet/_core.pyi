@@ -6,6 +6,11 @@ from numpy.typing import NDArray
 VIEWPOINTS: NDArray[np.float64]
 MAX_REGIONS: int
 MAX_COORDINATE: float
+MAX_POINTS: int
+
+class GeometryError(ValueError):
+    """Every error the core raises (shapes, layouts, sizes, counts, coordinates); its public
+    name is ``pfnet.errors.GeometryError``."""
 
 def farthest_point_sample(
     points: NDArray[np.float32], n_samples: int, start_index: int

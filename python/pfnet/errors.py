@@ -1,4 +1,13 @@
-"""Exceptions raised by pfnet for bad input or bad files (the CLI prints them in one line)."""
+"""Exceptions raised by pfnet for bad input or bad files (the CLI prints them in one line).
+
+``GeometryError`` is defined by the Rust core (``pfnet._core``, where a class can be raised from
+Rust) and re-exported here, its public home: every error of the core and every bad value given to
+``pfnet.geometry`` is one. It is a ``ValueError`` but not a ``PfnetError``.
+"""
+
+from pfnet._core import GeometryError
+
+__all__ = ["ConfigError", "DataError", "GeometryError", "PfnetError"]
 
 
 class PfnetError(Exception):

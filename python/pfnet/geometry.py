@@ -3,7 +3,8 @@
 Every function accepts float32 or float64 arrays of any memory layout (integer arrays are
 converted to float64), shaped ``(N, 3)`` for one cloud or ``(B, N, 3)`` for a batch, and
 releases the GIL while it computes; batches run in parallel across cores. Bad input raises
-``ValueError`` (shapes, sizes, NaN/inf) or ``TypeError`` (dtypes) naming the argument.
+:class:`pfnet.errors.GeometryError`, a ``ValueError`` (shapes, sizes, NaN/inf), or ``TypeError``
+(dtypes), naming the argument. A cloud may hold at most ``MAX_POINTS`` (2**32 - 1) points.
 
 Precision: sampling and nearest neighbours work on float32 coordinates (float64 input is
 rounded to float32 first); Chamfer terms are accumulated in float64; crops rank distances in
@@ -19,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from pfnet import _core
+from pfnet.errors import GeometryError
 
 __all__ = [
     "VIEWPOINTS",
@@ -39,6 +41,8 @@ MAX_REGIONS: int = _core.MAX_REGIONS
 """The most regions :func:`random_crop` may remove at once."""
 MAX_COORDINATE: float = _core.MAX_COORDINATE
 """The largest coordinate magnitude the kernels accept (squared distances stay finite)."""
+MAX_POINTS: int = _core.MAX_POINTS
+"""The most points one cloud may hold, 2**32 - 1: the core stores point indices as 32 bits."""
 
 
 def _as_cloud(
@@ -51,9 +55,17 @@ def _as_cloud(
     if array.dtype.kind not in "fiub" or array.dtype.kind == "b":
         raise TypeError(f"{name} must be a float32 or float64 array, got dtype {array.dtype}")
     if array.ndim not in (2, 3) or array.shape[-1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3) or (B, N, 3), got {array.shape}")
+        raise GeometryError(f"{name} must have shape (N, 3) or (B, N, 3), got {array.shape}")
     if array.shape[-2] == 0:
-        raise ValueError(f"{name} is empty: shape {array.shape}, a cloud needs at least one point")
+        raise GeometryError(
+            f"{name} is empty: shape {array.shape}, a cloud needs at least one point"
+        )
+    if array.shape[-2] > MAX_POINTS:
+        # Checked before the conversions below, which could copy the whole array first.
+        raise GeometryError(
+            f"{name} has {array.shape[-2]} points per cloud (shape {array.shape}), more than the "
+            f"{MAX_POINTS} (2^32 - 1) that one cloud may hold: point indices are 32-bit"
+        )
     batched = array.ndim == 3
     if array.dtype.type not in dtypes:
         array = array.astype(dtypes[0] if array.dtype.kind == "f" else np.float64)
@@ -65,7 +77,7 @@ def _as_cloud(
 
 def _check_pair(a: str, x: np.ndarray, xb: bool, b: str, y: np.ndarray, yb: bool, shapes) -> None:
     if xb != yb or x.shape[0] != y.shape[0]:
-        raise ValueError(
+        raise GeometryError(
             f"{a} and {b} must both be single clouds or batches of the same size, "
             f"got shapes {shapes[0]} and {shapes[1]}"
         )
@@ -102,11 +114,11 @@ def farthest_point_sample(
     start_index = _count("start_index", start_index)
     n = cloud.shape[1]
     if not 1 <= n_samples <= n:
-        raise ValueError(
+        raise GeometryError(
             f"n_samples must be in 1..{n} for points of shape {shape}, got {n_samples}"
         )
     if not 0 <= start_index < n:
-        raise ValueError(
+        raise GeometryError(
             f"start_index must be in 0..{n - 1} for points of shape {shape}, got {start_index}"
         )
     indices = _core.farthest_point_sample(cloud, n_samples, start_index)
@@ -174,20 +186,20 @@ def _viewpoints(name: str, value: ArrayLike, batch: int, batched: bool, ndim: in
     if array.ndim not in (ndim - 1, ndim) or array.shape[-1] != 3 or (not batched and not single):
         if not batched:
             expected = "(3,)" if ndim == 2 else "(K, 3)"
-        raise ValueError(f"{name} must have shape {expected}, got {array.shape}")
+        raise GeometryError(f"{name} must have shape {expected}, got {array.shape}")
     if not np.isfinite(array).all():
-        raise ValueError(f"{name} must be finite, got {array.tolist()}")
+        raise GeometryError(f"{name} must be finite, got {array.tolist()}")
     if single:
         array = np.broadcast_to(array, (batch, *array.shape))
     elif array.shape[0] != batch:
-        raise ValueError(f"{name} has {array.shape[0]} rows for a batch of {batch} clouds")
+        raise GeometryError(f"{name} has {array.shape[0]} rows for a batch of {batch} clouds")
     return np.ascontiguousarray(array)
 
 
 def _check_missing(n_missing: object, n: int, shape: tuple) -> int:
     n_missing = _count("n_missing", n_missing)
     if not 0 <= n_missing < n:
-        raise ValueError(
+        raise GeometryError(
             f"n_missing must be in 0..{n - 1} (fewer than the {n} points of points with shape "
             f"{shape}), got {n_missing}"
         )
@@ -218,7 +230,7 @@ def crop_by_viewpoint(
         the sizes vary, so a batch returns two lists of ``(n_i, 3)`` arrays.
     """
     if (n_missing is None) == (radius is None):
-        raise ValueError("give exactly one of n_missing or radius")
+        raise GeometryError("give exactly one of n_missing or radius")
     shape = np.shape(points)
     cloud, batched = _as_cloud("points", points, _CROP_DTYPES)
     views = _viewpoints("viewpoint", viewpoint, cloud.shape[0], batched, 2)
@@ -227,7 +239,7 @@ def crop_by_viewpoint(
             raise TypeError(f"radius must be a real number, got {type(radius).__name__}")
         radius = float(radius)
         if not (np.isfinite(radius) and radius >= 0):
-            raise ValueError(f"radius must be a finite number >= 0, got {radius}")
+            raise GeometryError(f"radius must be a finite number >= 0, got {radius}")
         crop = _core_crop("radius", cloud.dtype)
         parts = [crop(c, v, radius) for c, v in zip(cloud, views)]
         if not batched:
@@ -256,7 +268,7 @@ def crop_multi_region(points: ArrayLike, viewpoints: ArrayLike, n_missing: int):
     cloud, batched = _as_cloud("points", points, _CROP_DTYPES)
     views = _viewpoints("viewpoints", viewpoints, cloud.shape[0], batched, 3)
     if views.shape[1] == 0:
-        raise ValueError("viewpoints is empty: give at least one viewpoint")
+        raise GeometryError("viewpoints is empty: give at least one viewpoint")
     n_missing = _check_missing(n_missing, cloud.shape[1], shape)
     partial, missing = _core_crop("multi", cloud.dtype)(cloud, views, n_missing)
     return (partial, missing) if batched else (partial[0], missing[0])
@@ -290,12 +302,12 @@ def random_crop(
     seed = _count("seed", seed)
     n_regions = _count("n_regions", n_regions)
     if seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed}")
+        raise GeometryError(f"seed must be a non-negative integer, got {seed}")
     if directions not in ("viewpoints", "sphere"):
-        raise ValueError(f"directions must be 'viewpoints' or 'sphere', got {directions!r}")
+        raise GeometryError(f"directions must be 'viewpoints' or 'sphere', got {directions!r}")
     limit = 5 if directions == "viewpoints" else MAX_REGIONS
     if not 1 <= n_regions <= limit:
-        raise ValueError(
+        raise GeometryError(
             f"n_regions must be in 1..{limit} for directions={directions!r}, got {n_regions}"
         )
     batched = np.ndim(points) == 3
