@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "models": "pfnet.list_models",
     "demo": "pfnet.demo",
     "reproduce": "pfnet.reproduce",
+    "export": "pfnet.commands.export",
 }
 
 

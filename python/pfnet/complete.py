@@ -30,6 +30,7 @@ import numpy as np
 
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError, DataError
+from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 
 HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
 
@@ -96,7 +97,8 @@ def complete_clouds(
     """Predict the missing region of each cloud, in the cloud's own coordinates.
 
     Args:
-        model: A completion model in eval mode, with ``n_points`` and ``n_missing``.
+        model: A completion model in eval mode, with ``n_points`` and ``n_missing`` (or an
+            :class:`pfnet.runtimes.OnnxGenerator`).
         clouds: float32 ``(N_i, 3)`` partial clouds in any coordinates, any ``N_i``.
         batch_size: Clouds per forward pass.
         device: Torch device the model lives on.
@@ -147,13 +149,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)
+    parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
-    from pfnet.checkpoint import load_checkpoint
-    from pfnet.devices import inference_device
     from pfnet.io import refuse_input_overwrite
+    from pfnet.runtimes import load_generator
 
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
@@ -174,8 +176,8 @@ def run(args: argparse.Namespace) -> int:
     refuse_input_overwrite(
         [output for path in inputs for output in output_paths(args.out, path)], inputs
     )
-    device = inference_device(args.device)
-    model, _ = load_checkpoint(args.checkpoint, device=device)
+    loaded = load_generator(args.checkpoint, runtime=args.runtime, device=args.device)
+    model, device = loaded.model, loaded.device
     created = not args.out.exists()
     args.out.mkdir(parents=True, exist_ok=True)
     try:

@@ -18,6 +18,7 @@ from pathlib import Path
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
 from pfnet.inference import predict_split
+from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 
 HELP = "Predict the missing region of every sample of a data set split (test protocol)."
 
@@ -41,8 +42,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="prediction folder to write")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)
+    parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
     parser.add_argument(
-        "--gallery", type=Path, default=None, help="also render some predictions into a PNG"
+        "--gallery",
+        type=Path,
+        default=None,
+        help="also render some predictions into a PNG",
     )
     parser.add_argument(
         "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
@@ -72,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
         missing_ratio=args.missing_ratio,
         batch_size=args.batch_size,
         device=args.device,
+        runtime=args.runtime,
     )
     ratio = info["protocol"]["missing_ratio"]
     print(
