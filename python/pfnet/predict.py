@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--gallery",
         type=Path,
         default=None,
-        help="also render some predictions into a PNG",
+        help="also render some predictions into a PNG (or, .html, an interactive viewer)",
     )
     parser.add_argument(
         "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
@@ -62,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
         from pfnet.io import check_report_path
         from pfnet.shipped import resolve_checkpoint
 
-        if args.gallery.suffix.lower() != ".png":
-            raise ConfigError(f"--gallery must be a .png file, got {args.gallery}")
+        if args.gallery.suffix.lower() not in (".png", ".html"):
+            raise ConfigError(f"--gallery must be a .png or .html file, got {args.gallery}")
         from pfnet.data.format import split_categories
 
         inputs = [args.data, resolve_checkpoint(args.checkpoint)]

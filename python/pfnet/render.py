@@ -143,7 +143,9 @@ def render_panels(
     """Draw rows of labelled panels into a PNG file atomically (the layout of every gallery).
 
     Args:
-        out: Destination ``.png`` path; its folder is created if needed.
+        out: Destination ``.png`` path, or ``.html`` for :func:`pfnet.viewer.write_viewer`
+            (``views``, ``panel_inches`` and ``dpi`` then do not apply); its folder is
+            created if needed.
         rows: ``(label, panels)`` per row; the first row's panel titles head the columns.
             All panels of a row share one scale, so sizes compare across the row.
         views: Number of viewing angles per row (azimuths spread over 360 degrees).
@@ -173,8 +175,9 @@ def render_panels(
             f"render: {len(rows)} rows is more than the {MAX_ROWS} one picture can show; "
             "render them in several pictures"
         )
-    if Path(out).suffix.lower() != ".png":
-        raise ConfigError(f"render: the picture must be a .png file, got {out}")
+    suffix = Path(out).suffix.lower()
+    if suffix not in (".png", ".html"):
+        raise ConfigError(f"render: the picture must be a .png or .html file, got {out}")
     if not 1 <= views <= MAX_VIEWS:
         raise ConfigError(f"render: --views must be in [1, {MAX_VIEWS}], got {views}")
     if not (math.isfinite(point_size) and 0 < point_size <= 1000):
@@ -190,6 +193,10 @@ def render_panels(
                         f"render: sample {label!r} has a cloud of shape {pts.shape} "
                         "that is not a finite (N, 3) array"
                     )
+    if suffix == ".html":  # the interactive viewer: the same rows, rotatable
+        from pfnet.viewer import write_viewer
+
+        return write_viewer(out, rows, title=title, point_size=point_size)
     n_cols = max(len(panels) for _, panels in rows) * views
     fig = Figure(figsize=(panel_inches * n_cols + 0.6, panel_inches * len(rows) + 0.4), dpi=dpi)
     azimuths = [-60.0 + 360.0 * v / views for v in range(views)]
@@ -272,7 +279,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="one row from a partial input, a prediction and a ground truth file "
         "('-' leaves one out); repeat for more rows",
     )
-    parser.add_argument("--out", required=True, type=Path, help="PNG file to write")
+    parser.add_argument("--out", type=Path, default=None, help="PNG file to write")
+    parser.add_argument(
+        "--html",
+        type=Path,
+        default=None,
+        help="interactive HTML file to write (rotatable, one toggle per layer; needs "
+        "pfnet[viewer]); with --out, both are written",
+    )
     parser.add_argument(
         "--role",
         choices=ROLES,
@@ -291,10 +305,15 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.files and not args.sample:
         raise ConfigError("render: give at least one FILE or --sample PARTIAL PRED GT")
-    if args.out.suffix.lower() != ".png":
+    if args.out is None and args.html is None:
+        raise ConfigError("render: give --out PICTURE.png, --html VIEWER.html or both")
+    if args.out is not None and args.out.suffix.lower() != ".png":
         raise ConfigError(f"render: --out must be a .png file, got {args.out}")
+    if args.html is not None and args.html.suffix.lower() != ".html":
+        raise ConfigError(f"render: --html must be a .html file, got {args.html}")
+    outputs = [path for path in (args.out, args.html) if path is not None]
     inputs = [*args.files, *(t for triple in args.sample for t in triple if t != "-")]
-    refuse_input_overwrite([args.out], inputs)
+    refuse_input_overwrite(outputs, inputs)
     samples = []
     field = {"partial": "partial", "prediction": "prediction", "ground-truth": "ground_truth"}
     for name in args.files:
@@ -306,8 +325,9 @@ def run(args: argparse.Namespace) -> int:
         clouds = [None if t == "-" else read_point_cloud(t) for t in triple]
         label = Path(next(t for t in triple if t != "-")).stem
         samples.append(RenderSample(label, *clouds))
-    path = render_gallery(
-        args.out, samples, views=args.views, title=args.title, point_size=args.point_size
-    )
-    print(f"wrote {path} ({len(samples)} row(s))")
+    for out in outputs:
+        path = render_gallery(
+            out, samples, views=args.views, title=args.title, point_size=args.point_size
+        )
+        print(f"wrote {path} ({len(samples)} row(s))")
     return 0
