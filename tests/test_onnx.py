@@ -22,11 +22,11 @@ pytest.importorskip("onnxscript")
 from pfnet.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.data import load_split, test_protocol_crop  # noqa: E402
-from pfnet.errors import ConfigError, DataError  # noqa: E402
+from pfnet.errors import ConfigError, DataError, MissingDependency  # noqa: E402
 from pfnet.io import read_point_cloud, write_ply  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.onnx_export import TOLERANCE, file_sha256  # noqa: E402
-from pfnet.runtimes import MissingDependency, OnnxGenerator, load_generator  # noqa: E402
+from pfnet.runtimes import OnnxGenerator, load_generator  # noqa: E402
 from pfnet.shipped import WEIGHTS_DIR, read_metadata  # noqa: E402
 from pfnet.training.config import TrainConfig, preset_config  # noqa: E402
 

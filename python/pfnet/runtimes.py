@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from pfnet.errors import ConfigError, DataError, PfnetError
+from pfnet.errors import ConfigError, DataError, MissingDependency
 
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_HELP = (
@@ -36,10 +36,6 @@ RUNTIME_HELP = (
 )
 INFER_EXTRA = "pip install 'pfnet[infer]'"
 ONNX_SUFFIX = ".onnx"
-
-
-class MissingDependency(PfnetError):
-    """An optional dependency is not installed; the message names the extra to install."""
 
 
 def has_module(name: str) -> bool:
@@ -217,8 +213,7 @@ def load_generator(
 
         if model.metadata.get("source_sha256") != file_sha256(source):
             raise DataError(
-                f"{model.path} was not exported from {source} (its weights differ); "
-                "export it again"
+                f"{model.path} was not exported from {source} (its weights differ); export it again"
             )
     return LoadedGenerator(model, model.config, model.device, "onnx", source)
 

@@ -69,8 +69,9 @@ def write_viewer(
     Raises:
         MissingDependency: plotly is not installed.
     """
+    from pfnet.errors import MissingDependency
     from pfnet.io import atomic_path
-    from pfnet.runtimes import MissingDependency, has_module
+    from pfnet.runtimes import has_module
 
     if not has_module("plotly"):
         raise MissingDependency(f"the HTML viewer needs plotly, not installed: {VIEWER_EXTRA}")

@@ -33,8 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet export``."""
+    from pfnet.errors import MissingDependency
     from pfnet.io import refuse_input_overwrite
-    from pfnet.runtimes import MissingDependency, has_module
+    from pfnet.runtimes import has_module
     from pfnet.shipped import resolve_checkpoint
 
     if args.out.suffix.lower() != ".onnx":
