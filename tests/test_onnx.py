@@ -26,7 +26,7 @@ from pfnet.errors import ConfigError, DataError, MissingDependency  # noqa: E402
 from pfnet.io import read_point_cloud, write_ply  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.onnx_export import TOLERANCE, file_sha256  # noqa: E402
-from pfnet.runtimes import OnnxGenerator, load_generator  # noqa: E402
+from pfnet.runtimes import OnnxGenerator, has_module, load_generator  # noqa: E402
 from pfnet.shipped import WEIGHTS_DIR, read_metadata  # noqa: E402
 from pfnet.training.config import TrainConfig, preset_config  # noqa: E402
 
@@ -137,6 +137,10 @@ def test_predict_same_files_on_both_runtimes(exported, tiny_dataset, tmp_path):
     for runtime, source in (("torch", checkpoint), ("onnx", onnx_file)):
         args = ["predict", "--checkpoint", str(source), "--data", str(tiny_dataset)]
         assert main([*args, "--out", str(tmp_path / runtime), "--runtime", runtime]) == 0
+    if has_module("plotly"):  # the gallery as the HTML viewer
+        args += ["--out", str(tmp_path / "again"), "--gallery", str(tmp_path / "g.html")]
+        assert main([*args, "--gallery-count", "2"]) == 0
+        assert (tmp_path / "g.html").read_text(encoding="utf-8").count('"method":"update"') == 2
     info = json.loads((tmp_path / "onnx" / "predictions.json").read_text())
     assert info["runtime"] == "onnx" and info["device"] == "cpu"
     files = sorted((tmp_path / "torch").glob("*/*.npy"))

@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     if args.gallery is not None and args.gallery_count < 1:
         raise ConfigError(f"evaluate: --gallery-count must be at least 1, got {args.gallery_count}")
     if args.gallery is not None and args.gallery.suffix.lower() not in (".png", ".html"):
-        raise ConfigError(f"evaluate: --gallery must be a .png or .html file, got {args.gallery}")
+        raise ConfigError(f"evaluate: --gallery must be a .png file (or .html), got {args.gallery}")
     args.missing_ratio = recorded_protocol(args)
     for flag in ("json", "csv", "gallery"):
         if getattr(args, flag) is not None:  # checked before scoring, not after

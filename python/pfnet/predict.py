@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         from pfnet.shipped import resolve_checkpoint
 
         if args.gallery.suffix.lower() not in (".png", ".html"):
-            raise ConfigError(f"--gallery must be a .png or .html file, got {args.gallery}")
+            raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
         from pfnet.data.format import split_categories
 
         inputs = [args.data, resolve_checkpoint(args.checkpoint)]

@@ -177,7 +177,7 @@ def render_panels(
         )
     suffix = Path(out).suffix.lower()
     if suffix not in (".png", ".html"):
-        raise ConfigError(f"render: the picture must be a .png or .html file, got {out}")
+        raise ConfigError(f"render: the picture must be a .png file (or .html), got {out}")
     if not 1 <= views <= MAX_VIEWS:
         raise ConfigError(f"render: --views must be in [1, {MAX_VIEWS}], got {views}")
     if not (math.isfinite(point_size) and 0 < point_size <= 1000):
