@@ -37,6 +37,7 @@ COMMANDS: dict[str, str] = {
         "models",
         "demo",
         "reproduce",
+        "export",
     )
 }
 

@@ -93,7 +93,8 @@ def complete_clouds(
     """Predict the missing region of each cloud, in the cloud's own coordinates.
 
     Args:
-        model: A completion model in eval mode, with ``n_points`` and ``n_missing``.
+        model: A completion model in eval mode, with ``n_points`` and ``n_missing`` (or an
+            :class:`pfnet.runtimes.OnnxGenerator`).
         clouds: float32 ``(N_i, 3)`` partial clouds in any coordinates, any ``N_i``.
         batch_size: Clouds per forward pass.
         device: Torch device the model lives on.

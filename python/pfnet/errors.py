@@ -20,3 +20,7 @@ class DataError(PfnetError, ValueError):
 
 class ConfigError(PfnetError, ValueError):
     """A configuration value is out of range or of the wrong type."""
+
+
+class MissingDependency(PfnetError):
+    """An optional dependency is not installed; the message names the extra to install."""

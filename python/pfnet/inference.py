@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 
-from pfnet.devices import inference_device
 from pfnet.errors import ConfigError, DataError
 
 
@@ -24,7 +23,8 @@ def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: st
     """Run ``model`` over ``partial`` clouds in batches.
 
     Args:
-        model: A completion model in eval mode (``forward(partial) -> Completion``).
+        model: A completion model in eval mode (``forward(partial) -> Completion``), or an
+            :class:`pfnet.runtimes.OnnxGenerator` (which runs without torch).
         partial: float32 ``(S, n, 3)`` partial clouds.
         batch_size: Clouds per forward pass.
         device: Torch device the model lives on.
@@ -32,6 +32,10 @@ def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: st
     Returns:
         float32 ``(S, M, 3)`` predicted missing regions.
     """
+    from pfnet.runtimes import OnnxGenerator
+
+    if isinstance(model, OnnxGenerator):
+        return model.predict_missing(partial, batch_size)
     import torch
     from tqdm import tqdm
 
@@ -56,6 +60,7 @@ def predict_split(
     missing_ratio: float | None = None,
     batch_size: int = 32,
     device: str = "auto",
+    runtime: str = "auto",
 ) -> dict:
     """Predict every sample of ``split`` and write ``out_dir`` (see the module docstring).
 
@@ -68,6 +73,7 @@ def predict_split(
         missing_ratio: Ratio of the test crop; default: the checkpoint's training ratio.
         batch_size: Clouds per forward pass.
         device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
+        runtime: ``auto``, ``torch`` or ``onnx`` (:func:`pfnet.runtimes.load_generator`).
 
     Returns:
         The ``predictions.json`` document.
@@ -76,19 +82,19 @@ def predict_split(
         ConfigError: Bad device, batch size or ratio.
         DataError: Unreadable checkpoint or data set.
     """
-    from pfnet.checkpoint import load_checkpoint
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.io import atomic_path, refuse_overlap, save_npy
+    from pfnet.runtimes import load_generator
     from pfnet.shipped import describe, resolve_checkpoint
 
-    device = inference_device(device)
     checkpoint = resolve_checkpoint(checkpoint)
     refuse_overlap(out_dir, [data_dir, checkpoint], flag="prediction folder")
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ConfigError(
             f"prediction folder {out_dir} is a file; name a folder for the predictions"
         )
-    model, config = load_checkpoint(checkpoint, device=device)
+    loaded = load_generator(checkpoint, runtime=runtime, device=device)
+    model, config, device = loaded.model, loaded.config, loaded.device
     trained_ratio = config.missing_ratio
     ratio = float(trained_ratio if missing_ratio is None else missing_ratio)
     if not 0.0 < ratio < 1.0:
@@ -138,6 +144,7 @@ def predict_split(
         },
         "n_samples": len(clouds),
         "device": device,
+        "runtime": loaded.runtime,
     }
     with atomic_path(out / "predictions.json") as tmp:
         tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")

@@ -140,7 +140,9 @@ def render_panels(
     """Draw rows of labelled panels into a PNG file atomically (the layout of every gallery).
 
     Args:
-        out: Destination ``.png`` path; its folder is created if needed.
+        out: Destination ``.png`` path, or ``.html`` for :func:`pfnet.viewer.write_viewer`
+            (``views``, ``panel_inches`` and ``dpi`` then do not apply); its folder is
+            created if needed.
         rows: ``(label, panels)`` per row; the first row's panel titles head the columns.
             All panels of a row share one scale, so sizes compare across the row.
         views: Number of viewing angles per row (azimuths spread over 360 degrees).
@@ -171,8 +173,9 @@ def render_panels(
             f"{len(rows)} rows is more than the {MAX_ROWS} one picture can show; "
             "render them in several pictures"
         )
-    if Path(out).suffix.lower() != ".png":
-        raise ConfigError(f"the picture must be a .png file, got {out}")
+    suffix = Path(out).suffix.lower()
+    if suffix not in (".png", ".html"):
+        raise ConfigError(f"the picture must be a .png file (or .html), got {out}")
     if not 1 <= views <= MAX_VIEWS:
         raise ConfigError(f"views must be in [1, {MAX_VIEWS}], got {views}")
     if not (math.isfinite(point_size) and 0 < point_size <= MAX_POINT_SIZE):
@@ -188,6 +191,10 @@ def render_panels(
                         f"sample {label!r} has a cloud of shape {pts.shape} "
                         "that is not a finite (N, 3) array"
                     )
+    if suffix == ".html":  # the interactive viewer: the same rows, rotatable
+        from pfnet.viewer import write_viewer
+
+        return write_viewer(out, rows, title=title, point_size=point_size)
     n_cols = max(len(panels) for _, panels in rows) * views
     fig = Figure(figsize=(panel_inches * n_cols + 0.6, panel_inches * len(rows) + 0.4), dpi=dpi)
     azimuths = [-60.0 + 360.0 * v / views for v in range(views)]

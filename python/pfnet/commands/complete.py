@@ -11,6 +11,7 @@ from pathlib import Path
 
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
+from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 
 HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
 
@@ -29,21 +30,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)
+    parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
-    from pfnet.checkpoint import load_checkpoint
     from pfnet.completion import check_outputs, complete_files
-    from pfnet.devices import inference_device
+    from pfnet.runtimes import load_generator
 
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the outputs")
     inputs = check_outputs(args.inputs, args.out)
-    device = inference_device(args.device)
-    model, _ = load_checkpoint(args.checkpoint, device=device)
+    loaded = load_generator(args.checkpoint, runtime=args.runtime, device=args.device)
+    model, device = loaded.model, loaded.device
     done, failed = complete_files(
         model,
         inputs,

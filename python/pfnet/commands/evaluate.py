@@ -58,7 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="exit 0 even if some prediction files are missing or unreadable",
     )
-    parser.add_argument("--gallery", type=Path, default=None, help="render samples into a PNG")
+    parser.add_argument(
+        "--gallery",
+        type=Path,
+        default=None,
+        help="render samples into a PNG (or, .html, an interactive viewer)",
+    )
     parser.add_argument(
         "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
     )
@@ -73,8 +78,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.gallery is not None and args.gallery_count < 1:
         raise ConfigError(f"--gallery-count must be at least 1, got {args.gallery_count}")
-    if args.gallery is not None and args.gallery.suffix.lower() != ".png":
-        raise ConfigError(f"--gallery must be a .png file, got {args.gallery}")
+    if args.gallery is not None and args.gallery.suffix.lower() not in (".png", ".html"):
+        raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
     if args.pred_is_complete and args.region != "whole":
         raise ConfigError("--pred-is-complete needs --region whole")
     if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:

@@ -18,6 +18,7 @@ from pathlib import Path
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
 from pfnet.inference import predict_split
+from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 
 HELP = "Predict the missing region of every sample of a data set split (test protocol)."
 
@@ -41,8 +42,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="prediction folder to write")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)
+    parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
     parser.add_argument(
-        "--gallery", type=Path, default=None, help="also render some predictions into a PNG"
+        "--gallery",
+        type=Path,
+        default=None,
+        help="also render some predictions into a PNG (or, .html, an interactive viewer)",
     )
     parser.add_argument(
         "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
@@ -63,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
         from pfnet.io import check_report_path
         from pfnet.shipped import resolve_checkpoint
 
-        if args.gallery.suffix.lower() != ".png":
-            raise ConfigError(f"--gallery must be a .png file, got {args.gallery}")
+        if args.gallery.suffix.lower() not in (".png", ".html"):
+            raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
         from pfnet.data.format import split_categories
 
         inputs = [args.data, resolve_checkpoint(args.checkpoint)]
@@ -78,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         missing_ratio=args.missing_ratio,
         batch_size=args.batch_size,
         device=args.device,
+        runtime=args.runtime,
     )
     ratio = info["protocol"]["missing_ratio"]
     print(

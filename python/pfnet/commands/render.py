@@ -32,7 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="one row from a partial input, a prediction and a ground truth file "
         "('-' leaves one out); repeat for more rows",
     )
-    parser.add_argument("--out", required=True, type=Path, help="PNG file to write")
+    parser.add_argument("--out", type=Path, default=None, help="PNG file to write")
+    parser.add_argument(
+        "--html",
+        type=Path,
+        default=None,
+        help="interactive HTML file to write (rotatable, one toggle per layer; needs "
+        "pfnet[viewer]); with --out, both are written",
+    )
     parser.add_argument(
         "--role",
         choices=ROLES,
@@ -52,14 +59,19 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.files and not args.sample:
         raise ConfigError("give at least one FILE or --sample PARTIAL PRED GT")
-    if args.out.suffix.lower() != ".png":
+    if args.out is None and args.html is None:
+        raise ConfigError("give --out PICTURE.png, --html VIEWER.html or both")
+    if args.out is not None and args.out.suffix.lower() != ".png":
         raise ConfigError(f"--out must be a .png file, got {args.out}")
+    if args.html is not None and args.html.suffix.lower() != ".html":
+        raise ConfigError(f"--html must be a .html file, got {args.html}")
     if not 1 <= args.views <= MAX_VIEWS:
         raise ConfigError(f"--views must be in [1, {MAX_VIEWS}], got {args.views}")
     if not (math.isfinite(args.point_size) and 0 < args.point_size <= MAX_POINT_SIZE):
         raise ConfigError(f"--point-size must be in (0, {MAX_POINT_SIZE:g}], got {args.point_size}")
     inputs = [*args.files, *(t for triple in args.sample for t in triple if t != "-")]
-    refuse_input_overwrite([args.out], inputs)
+    outputs = [path for path in (args.out, args.html) if path is not None]
+    refuse_input_overwrite(outputs, inputs)
     samples = []
     for name in args.files:
         samples.append(RenderSample(label=Path(name).name))
@@ -70,8 +82,9 @@ def run(args: argparse.Namespace) -> int:
         clouds = [None if t == "-" else read_point_cloud(t) for t in triple]
         label = Path(next(t for t in triple if t != "-")).stem
         samples.append(RenderSample(label, *clouds))
-    path = render_gallery(
-        args.out, samples, views=args.views, title=args.title, point_size=args.point_size
-    )
-    print(f"wrote {path} ({len(samples)} row(s))")
+    for out in outputs:
+        path = render_gallery(
+            out, samples, views=args.views, title=args.title, point_size=args.point_size
+        )
+        print(f"wrote {path} ({len(samples)} row(s))")
     return 0

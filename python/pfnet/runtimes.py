@@ -1,0 +1,240 @@
+"""Where a generator runs: PyTorch, or ONNX Runtime without PyTorch.
+
+``pfnet complete`` and ``pfnet predict`` take ``--runtime auto|torch|onnx``:
+
+* ``torch`` loads a checkpoint, model file or shipped model with
+  :func:`pfnet.checkpoint.load_checkpoint` (needs ``pfnet[train]``).
+* ``onnx`` runs an ONNX file written by ``pfnet export`` (:mod:`pfnet.onnx_export`) on ONNX
+  Runtime (``pfnet[infer]``, no torch): a ``.onnx`` path, or a model file with its ONNX export
+  beside it (``NAME.onnx`` next to ``NAME.safetensors``, as the shipped models have).
+* ``auto`` (the default): an ``.onnx`` path runs on ONNX Runtime; anything else on PyTorch
+  when it is installed, else on ONNX Runtime.
+
+Both give a model with the same inference contract (``n_points``, ``n_missing``, and
+:func:`pfnet.inference.predict_missing` accepts either); their completions agree within
+:data:`pfnet.onnx_export.TOLERANCE`. Nothing here imports torch unless it is chosen.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pfnet.errors import ConfigError, DataError, MissingDependency
+
+RUNTIMES = ("auto", "torch", "onnx")
+RUNTIME_HELP = (
+    "auto: PyTorch if installed, else ONNX Runtime (an .onnx --checkpoint always runs on ONNX "
+    "Runtime); torch; onnx (default: auto)"
+)
+INFER_EXTRA = "pip install 'pfnet[infer]'"
+ONNX_SUFFIX = ".onnx"
+
+
+def has_module(name: str) -> bool:
+    """Whether ``name`` can be imported (without importing it)."""
+    return importlib.util.find_spec(name) is not None
+
+
+class OnnxGenerator:
+    """A generator exported by ``pfnet export``, run by ONNX Runtime.
+
+    Args:
+        path: The ``.onnx`` file.
+        device: ``cpu`` or ``cuda[:N]`` (the latter needs ``onnxruntime-gpu``).
+
+    Attributes:
+        n_points, n_missing: As the PyTorch generator's.
+        config: The training configuration stored in the file (a dict).
+        metadata: All of the file's metadata (see :mod:`pfnet.onnx_export`).
+        device: Where it runs: ``cpu`` or ``cuda[:N]``.
+        path: The file.
+
+    Raises:
+        MissingDependency: ONNX Runtime is not installed.
+        DataError: The file is not a readable pfnet ONNX export.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
+        from pfnet.onnx_export import FORMAT, VERSION
+
+        ort = import_onnxruntime("--runtime onnx")
+        self.path = Path(path)
+        options = ort.SessionOptions()
+        options.log_severity_level = 3  # ORT's own warnings are not the user's business
+        try:
+            self.session = ort.InferenceSession(
+                str(self.path), options, providers=_providers(ort, device)
+            )
+        except Exception as err:  # ORT raises its own types for missing or corrupt files
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+            raise DataError(f"ONNX model {self.path} cannot be read: {first}") from None
+        meta = self.session.get_modelmeta().custom_metadata_map
+        if meta.get("format") != FORMAT:
+            raise DataError(f"{self.path} is not a pfnet ONNX model (no {FORMAT!r} metadata)")
+        if meta.get("version") != VERSION:
+            raise DataError(
+                f"ONNX model {self.path} has format version {meta.get('version')}; "
+                f"this pfnet reads version {VERSION}"
+            )
+        try:
+            self.n_points = int(meta["n_points"])
+            self.n_missing = int(meta["n_missing"])
+            self.config = json.loads(meta["config"])
+        except (KeyError, ValueError, RecursionError) as err:
+            raise DataError(f"ONNX model {self.path} has broken metadata: {err}") from None
+        if not isinstance(self.config, dict) or not 0 < self.n_missing < self.n_points:
+            raise DataError(f"ONNX model {self.path} has broken metadata")
+        self.metadata = dict(meta)
+        self.inputs = [i.name for i in self.session.get_inputs()]
+        providers = self.session.get_providers()
+        self.device = device if "CUDAExecutionProvider" in providers else "cpu"
+        self.device = "cuda" if self.device == "auto" else self.device
+        if self.inputs not in (["partial"], ["partial", "scale_indices"]):
+            raise DataError(f"ONNX model {self.path} has inputs {self.inputs}, not a pfnet export")
+
+    def predict(self, partial: np.ndarray) -> np.ndarray:
+        """float32 ``(B, n, 3)`` normalised partial clouds -> float32 ``(B, M, 3)``."""
+        from pfnet.geometry import farthest_point_sample
+
+        partial = np.ascontiguousarray(partial, dtype=np.float32)
+        feeds = {"partial": partial}
+        if "scale_indices" in self.inputs:  # the IFPS prefix, as the PyTorch encoder takes
+            index = farthest_point_sample(partial, partial.shape[1] // 2)
+            feeds["scale_indices"] = np.asarray(index, dtype=np.int64)
+        (detail,) = self.session.run(["detail"], feeds)
+        return detail
+
+    def predict_missing(self, partial: np.ndarray, batch_size: int) -> np.ndarray:
+        """:func:`pfnet.inference.predict_missing` on ONNX Runtime: ``(S, n, 3)`` in batches."""
+        from tqdm import tqdm
+
+        if batch_size < 1:
+            raise ConfigError(f"--batch-size must be at least 1, got {batch_size}")
+        starts = range(0, len(partial), batch_size)
+        outputs = [
+            self.predict(partial[start : start + batch_size])
+            for start in tqdm(starts, desc="predict", unit="batch", disable=None, leave=False)
+        ]
+        return np.concatenate(outputs).astype(np.float32, copy=False)
+
+
+def import_onnxruntime(needed_by: str) -> Any:
+    """``onnxruntime``, or a one-line :class:`MissingDependency` naming the extra."""
+    if not has_module("onnxruntime"):
+        raise MissingDependency(f"{needed_by} needs ONNX Runtime, not installed: {INFER_EXTRA}")
+    import onnxruntime
+
+    return onnxruntime
+
+
+def _providers(ort: Any, device: str) -> list:
+    """ONNX Runtime execution providers for ``device`` (auto: CUDA when ORT has it)."""
+    cuda = "CUDAExecutionProvider" in ort.get_available_providers()
+    if device in ("auto", "cpu"):
+        return (["CUDAExecutionProvider"] if cuda and device == "auto" else []) + [
+            "CPUExecutionProvider"
+        ]
+    match = re.fullmatch(r"cuda(?::(\d+))?", device)
+    if match is None:
+        raise ConfigError(f"device must be auto, cpu, cuda or cuda:N, got {device!r}")
+    if not cuda:
+        raise ConfigError(
+            f"device {device}: this ONNX Runtime has no CUDA (install onnxruntime-gpu, or use "
+            "--runtime torch, or --device cpu)"
+        )
+    return [("CUDAExecutionProvider", {"device_id": int(match.group(1) or 0)})]
+
+
+@dataclass
+class LoadedGenerator:
+    """A generator ready for inference and where it came from.
+
+    Attributes:
+        model: The PyTorch generator (eval mode) or an :class:`OnnxGenerator`.
+        config: Its network's :class:`~pfnet.models.ModelConfig`.
+        device: Where it runs (``cpu``, ``cuda``, ``cuda:N``).
+        runtime: ``torch`` or ``onnx``.
+        source: The checkpoint, model file or ONNX file named by ``--checkpoint``.
+    """
+
+    model: Any
+    config: Any
+    device: str
+    runtime: str
+    source: Path
+
+
+def load_generator(
+    checkpoint: str | os.PathLike[str] | None, *, runtime: str = "auto", device: str = "auto"
+) -> LoadedGenerator:
+    """Load a generator for inference on the runtime ``runtime`` (see the module docstring).
+
+    Args:
+        checkpoint: A checkpoint, model file, ``.onnx`` file or shipped model's name; ``None``
+            for the default shipped model.
+        runtime: ``auto``, ``torch`` or ``onnx``.
+        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Raises:
+        ConfigError: Unknown runtime or device, a checkpoint the runtime cannot run.
+        MissingDependency: Neither PyTorch nor ONNX Runtime is installed for the choice.
+        DataError: An unreadable file.
+    """
+    from pfnet.shipped import resolve_checkpoint
+
+    if runtime not in RUNTIMES:
+        raise ConfigError(f"--runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
+    source = resolve_checkpoint(checkpoint)
+    is_onnx = source.suffix.lower() == ONNX_SUFFIX
+    if is_onnx and runtime == "torch":
+        raise ConfigError(f"{source} is an ONNX model: run it with --runtime onnx (or auto)")
+    if runtime == "torch" or (runtime == "auto" and not is_onnx and has_module("torch")):
+        from pfnet.checkpoint import load_checkpoint
+        from pfnet.devices import inference_device
+
+        device = inference_device(device)
+        model, config = load_checkpoint(source, device=device)
+        return LoadedGenerator(model, config, device, "torch", source)
+    if runtime == "auto" and not has_module("onnxruntime"):
+        raise MissingDependency(
+            f"completing needs ONNX Runtime (or PyTorch); neither is installed: {INFER_EXTRA}"
+        )
+    model = OnnxGenerator(source if is_onnx else onnx_export_of(source), device)
+    if not is_onnx:
+        from pfnet.onnx_export import file_sha256
+
+        if model.metadata.get("source_sha256") != file_sha256(source):
+            raise DataError(
+                f"{model.path} was not exported from {source} (its weights differ); export it again"
+            )
+    from pfnet.models.config import ModelConfig
+
+    config = ModelConfig.from_dict(model.config, source=f"ONNX model {model.path}", extra="ignore")
+    return LoadedGenerator(model, config, model.device, "onnx", source)
+
+
+def onnx_export_of(source: Path) -> Path:
+    """The ONNX export beside a model file: ``NAME.onnx`` next to ``NAME.safetensors``.
+
+    (The export records the SHA-256 of the file it came from, which
+    :func:`load_generator` checks.)
+
+    Raises:
+        ConfigError: There is none (the message says how to make one).
+    """
+    candidate = source.with_suffix(ONNX_SUFFIX)
+    if not candidate.is_file():
+        torch_hint = "" if has_module("torch") else " where PyTorch is installed"
+        raise ConfigError(
+            f"{source} has no ONNX export to run without PyTorch; make one{torch_hint} with "
+            f"`pfnet export --checkpoint {source} --out {candidate}`"
+        )
+    return candidate
