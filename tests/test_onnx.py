@@ -92,7 +92,7 @@ def test_shipped_onnx_is_the_shipped_model(tiny_dataset):
     torch_run = load_generator(None, runtime="torch", device="cpu")
     assert onnx_run.model.path == SHIPPED_ONNX  # load_generator checked source_sha256
     config, _ = read_metadata(WEIGHTS_DIR / "sh3d-small.safetensors")
-    assert onnx_run.config == TrainConfig.from_dict(config).to_dict()
+    assert onnx_run.config == torch_run.config == TrainConfig.from_dict(config).model_config()
     # float16-exact weights stored as float16: about the size of the safetensors file
     assert (
         SHIPPED_ONNX.stat().st_size < 1.1 * (WEIGHTS_DIR / "sh3d-small.safetensors").stat().st_size

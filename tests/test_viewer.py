@@ -16,7 +16,7 @@ import pytest
 
 from pfnet.cli import main
 from pfnet.io import save_npy, write_ply
-from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
 
 plotly = pytest.importorskip("plotly")
 

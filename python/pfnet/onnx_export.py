@@ -174,21 +174,23 @@ def export_onnx(
     import onnx
 
     from pfnet import __version__
-    from pfnet.checkpoint import load_checkpoint
+    from pfnet.checkpoint import load_checkpoint, read_checkpoint
     from pfnet.io import atomic_path
     from pfnet.shipped import SUFFIX, describe, read_metadata, resolve_checkpoint
 
     out = Path(out)
     if out.suffix.lower() != ".onnx":
-        raise ConfigError(f"export: --out must be a .onnx file, got {out}")
+        raise ConfigError(f"the ONNX file must be a .onnx path, got {out}")
     source = resolve_checkpoint(checkpoint)
     model, config = load_checkpoint(source, device="cpu")
-    card = read_metadata(source)[1] if source.name.endswith(SUFFIX) else {}
-    multi_resolution = bool(getattr(model, "multi_resolution", False))
+    if source.name.endswith(SUFFIX):
+        config_dict, card = read_metadata(source)
+    else:  # the whole training configuration, not only the network's part of it
+        config_dict, card = read_checkpoint(source)["config"], {}
+    multi_resolution = model.multi_resolution
     n_input = int(model.n_points) - int(model.n_missing)
     graph_model = _generator_graph(model, multi_resolution, n_input)
     float16 = shrink_initializers(graph_model)
-    config_dict = config.to_dict()
     metadata = {
         "format": FORMAT,
         "version": VERSION,
@@ -250,7 +252,7 @@ def _compare_with_torch(
         worst = max(worst, float(np.abs(got - want).max()))
     if not worst <= TOLERANCE:
         raise DataError(
-            f"export: ONNX Runtime's completion differs from PyTorch's by {worst:.3g} "
+            f"ONNX Runtime's completion differs from PyTorch's by {worst:.3g} "
             f"(tolerance {TOLERANCE:g}); the file was not written"
         )
     return worst

@@ -29,7 +29,7 @@ PANEL_PIXELS = 420
 
 def _layer_names() -> dict[str, str]:
     """Legend entry of each of the paper's colours."""
-    from pfnet.render import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
 
     return {
         PARTIAL_COLOR: "partial input",

@@ -60,11 +60,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet demo``."""
     from pfnet.demo_pipeline import MAX_MINUTES, run_demo
+    from pfnet.rendering import MAX_ROWS
 
     if not (math.isfinite(args.minutes) and 0 < args.minutes <= MAX_MINUTES):
         raise ConfigError(f"--minutes must be positive and at most a week, got {args.minutes}")
     if args.epochs is not None and args.epochs < 1:
         raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
+    if not 1 <= args.gallery_count <= MAX_ROWS:  # before the demo's work, not after it
+        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
     if args.source is not None and not args.source.exists():
         raise ConfigError(f"--source {args.source} does not exist")
     run_demo(

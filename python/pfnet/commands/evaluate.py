@@ -22,6 +22,7 @@ from pfnet.evaluation import (
     recorded_protocol,
     render_evaluation_gallery,
 )
+from pfnet.rendering import MAX_ROWS
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
 
@@ -76,8 +77,9 @@ def run(args: argparse.Namespace) -> int:
     from pfnet.metrics import summarize
     from pfnet.reports import format_table, write_csv, write_json
 
-    if args.gallery is not None and args.gallery_count < 1:
-        raise ConfigError(f"--gallery-count must be at least 1, got {args.gallery_count}")
+    if args.gallery is not None and not 1 <= args.gallery_count <= MAX_ROWS:
+        # checked before the work: 1,000 rows once failed after every prediction was made
+        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
     if args.gallery is not None and args.gallery.suffix.lower() not in (".png", ".html"):
         raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
     if args.pred_is_complete and args.region != "whole":

@@ -18,6 +18,7 @@ from pathlib import Path
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
 from pfnet.inference import predict_split
+from pfnet.rendering import MAX_ROWS
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 
 HELP = "Predict the missing region of every sample of a data set split (test protocol)."
@@ -62,8 +63,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the predictions")
-    if args.gallery is not None and args.gallery_count < 1:
-        raise ConfigError(f"--gallery-count must be at least 1, got {args.gallery_count}")
+    if args.gallery is not None and not 1 <= args.gallery_count <= MAX_ROWS:
+        # checked before the work: 1,000 rows once failed after every prediction was made
+        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
     if args.gallery is not None:  # before predicting: never over the data or the checkpoint
         from pfnet.io import check_report_path
         from pfnet.shipped import resolve_checkpoint

@@ -37,6 +37,9 @@ __all__ = ["PrepareReport", "assign_splits", "detect_format", "prepare_dataset",
 
 
 MIN_POINTS = 16
+MAX_POINTS = 1 << 16  # the most points a model takes (pfnet.models.config.MAX_POINTS)
+# Procedural shapes per category: 10^9 grew past 3 GB before a shape was made.
+MAX_COUNT = 100_000
 MAX_POOL = 1 << 20  # points per shape; 12 MiB a shape in float32
 DEFAULT_PROCEDURAL_COUNT = 100
 # Below this many shapes per worker a process pool costs more than it saves.
@@ -228,8 +231,11 @@ def _is_integer(value: object) -> bool:
 def _check_arguments(
     points: int, seed: int, test_fraction: float, val_fraction: float, workers: int | None
 ) -> None:
-    if not _is_integer(points) or points < MIN_POINTS:
-        raise ConfigError(f"points must be an integer >= {MIN_POINTS}, got {points!r}")
+    if not _is_integer(points) or not MIN_POINTS <= points <= MAX_POINTS:
+        raise ConfigError(
+            f"points must be an integer in [{MIN_POINTS}, {MAX_POINTS}] (the most a model "
+            f"takes), got {points!r}"
+        )
     if not _is_integer(seed) or seed < 0:
         raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
     for label, value in (("test_fraction", test_fraction), ("val_fraction", val_fraction)):
@@ -351,8 +357,8 @@ def prepare_dataset(
     workers = None if workers is None else int(workers)
     if format != "auto" and format not in FORMATS:
         raise ConfigError(f"format must be auto or one of {', '.join(FORMATS)}, got {format!r}")
-    if count is not None and (not _is_integer(count) or count < 1):
-        raise ConfigError(f"count must be a positive integer, got {count!r}")
+    if count is not None and (not _is_integer(count) or not 1 <= count <= MAX_COUNT):
+        raise ConfigError(f"count must be an integer in [1, {MAX_COUNT}], got {count!r}")
     count = None if count is None else int(count)
     if pool is not None and (not _is_integer(pool) or pool <= points or pool > MAX_POOL):
         raise ConfigError(
