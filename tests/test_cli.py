@@ -95,3 +95,29 @@ def test_commands_import_no_other_command():
         }
         assert not {m for m in imported if m.startswith("pfnet.commands")}, name
         assert "pfnet.cli" not in imported, name
+
+
+def test_running_out_of_memory_in_pytorch_is_one_line(monkeypatch, capsys) -> None:
+    """The seventh audit: torch's OutOfMemoryError (a RuntimeError) printed a traceback."""
+    import pfnet.commands.models as command
+
+    class OutOfMemoryError(RuntimeError):  # what torch raises, by name
+        pass
+
+    def run(args):
+        raise OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB\nmore text")
+
+    monkeypatch.setattr(command, "run", run)
+    assert main(["models"]) == 1
+    err = capsys.readouterr().err
+    assert (
+        err
+        == "pfnet models: error: out of memory (CUDA out of memory. Tried to allocate 2.00 GiB)\n"
+    )
+
+    def bug(args):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(command, "run", bug)
+    with pytest.raises(RuntimeError, match="a bug"):
+        main(["models"])

@@ -96,6 +96,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     except USER_ERRORS as err:
         print(f"pfnet {args.command}: error: {_one_line(err)}", file=sys.stderr)
         return 1
+    except RuntimeError as err:
+        # torch.OutOfMemoryError (CPU or CUDA) is a RuntimeError; named so that this module
+        # need not import torch
+        if type(err).__name__ != "OutOfMemoryError":
+            raise
+        print(f"pfnet {args.command}: error: out of memory ({_first(err)})", file=sys.stderr)
+        return 1
+
+
+def _first(err: BaseException) -> str:
+    """The first line of an error's message, at most 200 characters."""
+    return (str(err).splitlines() or [type(err).__name__])[0][:200]
 
 
 def _one_line(err: BaseException) -> str:
