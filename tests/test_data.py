@@ -182,7 +182,8 @@ def test_cloud_set_helpers() -> None:
 @pytest.mark.parametrize(
     ("options", "message"),
     [
-        ({"points": 8}, "points must be an integer >= 16"),
+        ({"points": 8}, r"points must be an integer in \[16, 65536\]"),
+        ({"points": 3_000_000}, r"points must be an integer in \[16, 65536\] \(the most a model"),
         ({"points": 100.0}, "points must be an integer"),
         ({"seed": -1}, "seed must be a non-negative integer"),
         ({"test_fraction": 1.0}, r"test_fraction must be in \[0, 1\)"),
@@ -193,7 +194,8 @@ def test_cloud_set_helpers() -> None:
         ),
         ({"workers": 0}, r"workers must be an integer in \[1, 256\]"),
         ({"workers": 1000}, r"workers must be an integer in \[1, 256\]"),
-        ({"count": 0}, "count must be a positive integer"),
+        ({"count": 0}, r"count must be an integer in \[1, 100000\]"),
+        ({"count": 10**9}, r"count must be an integer in \[1, 100000\], got 1000000000"),
         ({"format": "obj"}, "format must be auto or one of meshes, shapenet-part"),
         ({"categories": "chair,boat"}, "categories: boat not in the source; available: cabinet"),
         ({"categories": ""}, "categories is empty"),

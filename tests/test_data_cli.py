@@ -70,7 +70,7 @@ def test_prepare_mesh_folder_with_format(
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (["--points", "4"], "points must be an integer >= 16"),
+        (["--points", "4"], r"points must be an integer in \[16, 65536\]"),
         (["--test-fraction", "1.5"], r"test_fraction must be in \[0, 1\)"),
         (["--categories", "boat"], "categories: boat not in the source"),
     ],

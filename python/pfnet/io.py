@@ -125,8 +125,8 @@ def check_report_path(
     """
     refuse_input_overwrite([output], [], flag=flag)  # not a folder
     target = Path(output)
-    if target.is_symlink() or (target.exists() and not target.is_file()):
-        # the report replaces what is there: never a device, a pipe or a link's target
+    if target.exists() and not target.is_file() and not target.is_symlink():
+        # the report replaces what is there: never a device or a pipe
         raise ConfigError(f"{flag}: {output} exists and is not a regular file")
     for item in inputs:
         if Path(item).is_file():
@@ -170,8 +170,9 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         The temporary path to write to.
     """
     final = Path(path)
-    if final.is_symlink() or (final.exists() and not final.is_file()):
-        # os.replace would put a file where a device, a pipe or a link was
+    if final.exists() and not final.is_file() and not final.is_symlink():
+        # os.replace would put a file where a device or a pipe was (a link is replaced by
+        # the file, its target left alone: pfnet never writes through a link)
         raise ConfigError(f"{final} exists and is not a regular file; pfnet will not replace it")
     tmp = final.with_name(f".{final.stem}.{secrets.token_hex(6)}.tmp{final.suffix}")
     try:

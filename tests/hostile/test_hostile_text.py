@@ -105,7 +105,9 @@ def test_a_split_member_numpy_would_prefer_is_refused(tmp_path: Path, tiny_datas
         load_split(data, "test")
 
 
-def test_reports_never_replace_devices_pipes_or_links(tmp_path: Path, tiny_dataset: Path) -> None:
+def test_reports_replace_no_device_or_pipe_nor_write_through_links(
+    tmp_path: Path, tiny_dataset: Path
+) -> None:
     import os
 
     from forge import write_predictions
@@ -117,11 +119,13 @@ def test_reports_never_replace_devices_pipes_or_links(tmp_path: Path, tiny_datas
     os.mkfifo(pipe)
     link = tmp_path / "link.json"
     link.symlink_to(tmp_path / "elsewhere.json")
-    for target in (pipe, link, Path("/dev/null")):
+    for target in (pipe, Path("/dev/null")):
         code = main(["evaluate", str(pred), "--data", str(tiny_dataset), "--json", str(target)])
         assert code == 1
-    assert pipe.is_fifo() and link.is_symlink() and not (tmp_path / "elsewhere.json").exists()
-    assert Path("/dev/null").is_char_device()
+    assert pipe.is_fifo() and Path("/dev/null").is_char_device()
+    # a link is replaced by the report, never written through
+    assert main(["evaluate", str(pred), "--data", str(tiny_dataset), "--json", str(link)]) == 0
+    assert not link.is_symlink() and not (tmp_path / "elsewhere.json").exists()
 
 
 def test_binary_bodies_are_mapped_not_read_and_headers_bounded(tmp_path: Path) -> None:
