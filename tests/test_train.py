@@ -343,6 +343,8 @@ def test_schedule_config_errors() -> None:
         FAST.replace(alpha_fractions=((0.1, 0.01),))
     with pytest.raises(ConfigError, match="warmup_steps must be an integer >= 0"):
         FAST.replace(warmup_steps=-1)
+    with pytest.raises(ConfigError, match="and at most the run's steps; got 1000000000000"):
+        FAST.replace(steps=1, warmup_steps=10**12)  # the seventh audit: accepted
 
 
 def test_augmented_training_runs_and_needs_a_known_up_axis(

@@ -224,8 +224,11 @@ def evaluate_predictions(
     )
 
 
-def recorded_protocol(pred_dir: str | os.PathLike[str]) -> tuple[str, float] | None:
-    """The split and missing ratio ``PRED/predictions.json`` records, or None without one.
+def recorded_protocol(
+    pred_dir: str | os.PathLike[str],
+) -> tuple[str, float, int | None] | None:
+    """The split, missing ratio and points per cloud ``PRED/predictions.json`` records (the
+    points ``None`` in records of older pfnet versions), or None without a record.
 
     Predictions made by ``pfnet predict`` record their split and crop; scoring them with
     another crop compares each prediction with the wrong missing region, silently.
@@ -239,7 +242,8 @@ def recorded_protocol(pred_dir: str | os.PathLike[str]) -> tuple[str, float] | N
     try:
         info = json.loads(record.read_text(encoding="utf-8"))
         ratio = float(info["protocol"]["missing_ratio"])
-        return str(info["split"]), ratio
+        points = info["protocol"].get("n_points")
+        return str(info["split"]), ratio, None if points is None else int(points)
     except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
         # ValueError: bad UTF-8 or JSON; RecursionError: forged nesting
         raise DataError(f"cannot read {record} ({type(err).__name__}: {str(err)[:120]})") from None

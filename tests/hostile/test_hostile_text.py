@@ -161,3 +161,48 @@ def test_ascii_pcd_is_read_in_blocks_and_a_compression_bomb_refused(tmp_path: Pa
     bomb.write_bytes((head.format(n=n) + f"POINTS {n}\nDATA binary_compressed\n").encode() + body)
     with pytest.raises(DataError, match="claims to expand 2400000 times"):
         read_point_cloud(bomb)
+
+
+def test_evaluate_refuses_predictions_of_clouds_of_another_size(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    """The seventh audit: 512-point predictions scored against 2,048-point clouds, rc 0."""
+    import json
+
+    from forge import write_predictions
+
+    from pfnet.cli import main
+
+    pred = write_predictions(tmp_path / "pred", tiny_dataset, record=True)
+    info = json.loads((pred / "predictions.json").read_text())
+    info["protocol"]["n_points"] = 2048  # the data set's clouds have 512
+    (pred / "predictions.json").write_text(json.dumps(info))
+    base = ["evaluate", str(pred), "--data", str(tiny_dataset)]
+    assert main(base) == 1
+    err = capsys.readouterr().err
+    assert "was predicted from clouds of 2048 points" in err and "has 512" in err
+    assert main([*base, "--ignore-recorded-protocol"]) == 0
+    info["protocol"]["n_points"] = 512
+    (pred / "predictions.json").write_text(json.dumps(info))
+    assert main(base) == 0
+
+
+def test_odd_dtypes_and_manifests_are_refused(tmp_path: Path, tiny_dataset: Path) -> None:
+    import json
+    import shutil
+
+    from pfnet.data import load_split
+
+    path = tmp_path / "t.npy"
+    np.save(path, np.zeros((10, 3), "m8[s]"))  # timedelta64 is an integer to numpy
+    with pytest.raises(DataError, match="expected numeric coordinates, got dtype timedelta64"):
+        read_point_cloud(path)
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    (data / "manifest.json").write_text(json.dumps({**manifest, "categories": "x"}))
+    with pytest.raises(DataError, match="categories must be a list of names"):
+        load_split(data, "test")
+    (data / "manifest.json").write_text(json.dumps(manifest) + " " * (17 << 20))
+    with pytest.raises(DataError, match="larger than 16 MB; not a manifest"):
+        load_split(data, "test")

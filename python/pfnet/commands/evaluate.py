@@ -11,6 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError, DataError
 from pfnet.evaluation import (
     FAR,
@@ -153,10 +154,17 @@ def _scoring_ratio(args: argparse.Namespace) -> float:
         raise ConfigError(f"{err}; fix or remove it, or pass --ignore-recorded-protocol") from None
     if recorded is None:
         return 0.25 if asked is None else asked
-    made_split, made_ratio = recorded
+    made_split, made_ratio, made_points = recorded
     ratio = made_ratio if asked is None else asked
     if args.ignore_recorded_protocol:
         return ratio
+    points = read_manifest(args.data).get("points")
+    if made_points is not None and isinstance(points, int) and points != made_points:
+        raise ConfigError(
+            f"{args.pred} was predicted from clouds of {made_points} points ({record}); "
+            f"--data {args.data} has {points}: score it against the data set it was "
+            "predicted on, or pass --ignore-recorded-protocol"
+        )
     if made_split != args.split:
         raise ConfigError(
             f"{args.pred} holds predictions of the {made_split!r} split "

@@ -45,6 +45,8 @@ __all__ = [
 FORMAT_NAME = "pfnet-completion-dataset"
 FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
+# A manifest lists shapes' credits and skipped files: well under a megabyte for 820 models.
+MAX_MANIFEST_BYTES = 16 << 20
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 
 # A fixed timestamp for every member of the .npz archives: the same arrays give the same bytes.
@@ -174,10 +176,17 @@ def read_manifest(root: str | os.PathLike[str]) -> dict:
         raise DataError(f"{folder}: no such dataset folder")
     if not path.is_file():
         raise DataError(f"{folder}: not a pfnet dataset (no {MANIFEST_NAME}; run `pfnet prepare`)")
+    if path.stat().st_size > MAX_MANIFEST_BYTES:  # 48 MB of JSON took 555 MB to parse
+        raise DataError(f"{path}: larger than {MAX_MANIFEST_BYTES >> 20} MB; not a manifest")
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError) as err:  # RecursionError: forged nesting
         raise DataError(f"{path}: cannot read the manifest: {str(err)[:200]}") from None
+    listed = manifest.get("categories") if isinstance(manifest, dict) else None
+    if listed is not None and not (
+        isinstance(listed, list) and all(isinstance(c, str) for c in listed)
+    ):  # a string here once switched the check of the splits' categories off
+        raise DataError(f"{path}: the manifest's categories must be a list of names")
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise DataError(f"{path}: not a {FORMAT_NAME} manifest")
     version = manifest.get("version")

@@ -66,7 +66,7 @@ def first_three_columns(file: Path, array: np.ndarray) -> np.ndarray:
             f"{file}: shape {array.shape} is {array.shape[1]} columns of {array.shape[0]} rows; "
             f"points are rows (N, 3) with at most {MAX_COLUMNS - 3} attribute columns: {hint}"
         )
-    if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.number):
+    if array.dtype.kind not in "fiuc":  # not bool, not timedelta64 (an integer to numpy)
         raise DataError(f"{file}: expected numeric coordinates, got dtype {array.dtype}")
     if np.issubdtype(array.dtype, np.complexfloating):
         raise DataError(f"{file}: expected real coordinates, got dtype {array.dtype}")

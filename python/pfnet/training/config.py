@@ -295,10 +295,12 @@ def _validate(c: TrainConfig) -> None:
         "increasing fractions of the run in (0, 1)",
     )
     require(
-        is_int(c.warmup_steps) and c.warmup_steps >= 0,
+        is_int(c.warmup_steps)
+        and c.warmup_steps >= 0
+        and (not is_int(c.steps) or c.warmup_steps <= c.steps),
         "warmup_steps",
         c.warmup_steps,
-        "an integer >= 0",
+        "an integer >= 0 and at most the run's steps",
     )
     require(
         _is_alpha_schedule(c.alpha_fractions, lambda f: is_number(f) and 0 <= f < 1),
@@ -334,7 +336,7 @@ def _validate(c: TrainConfig) -> None:
         c.augment_jitter,
         "a number in [0, 0.1]",
     )
-    require(is_int(c.seed) and c.seed >= 0, "seed", c.seed, "an integer >= 0")
+    require(is_int(c.seed) and 0 <= c.seed < 2**63, "seed", c.seed, "an integer in [0, 2**63)")
     # each worker is a process holding a copy of the data set: 100,000 filled 24 GB in 10 s
     require(
         is_int(c.workers) and 0 <= c.workers <= MAX_WORKERS,
