@@ -13,6 +13,7 @@ rows), ``rng`` (torch CPU / CUDA generator states) and ``world_size``.
 from __future__ import annotations
 
 import os
+import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,6 +46,7 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
     path = Path(path)
     if not path.is_file():
         raise DataError(f"checkpoint {path} does not exist")
+    _check_stored(path)
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # torch raises many types for corrupt or unsafe files
@@ -61,6 +63,26 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
         if not isinstance(state.get(key), kind):
             raise DataError(f"checkpoint {path} has no {key!r} table: it is damaged or foreign")
     return state
+
+
+def _check_stored(path: Path) -> None:
+    """Refuse compressed members before ``torch.load`` unpacks them all.
+
+    ``torch.save`` stores its archive uncompressed, so what loading unpacks is bounded by
+    the file's size; a forged 5.6 MB checkpoint with a deflated 1.2 GB tensor took 1.7 GB.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            packed = [
+                i.filename for i in archive.infolist() if i.compress_type != zipfile.ZIP_STORED
+            ]
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return  # not a zip: torch.load names what is wrong
+    if packed:
+        raise DataError(
+            f"checkpoint {path} has compressed members ({packed[0][:80]}, ...), which "
+            "torch.save never writes: it is forged or damaged"
+        )
 
 
 def check_weights(path: Path, config: ModelConfig, weights: dict[str, Any]) -> None:

@@ -206,3 +206,21 @@ def test_odd_dtypes_and_manifests_are_refused(tmp_path: Path, tiny_dataset: Path
     (data / "manifest.json").write_text(json.dumps(manifest) + " " * (17 << 20))
     with pytest.raises(DataError, match="larger than 16 MB; not a manifest"):
         load_split(data, "test")
+
+
+def test_a_checkpoint_with_compressed_members_is_refused_before_loading(tmp_path: Path) -> None:
+    """The seventh audit: torch.load unpacked a deflated 1.2 GB tensor of a 5.6 MB file."""
+    import zipfile
+
+    torch = pytest.importorskip("torch")
+    from pfnet.checkpoint import read_checkpoint
+
+    path = tmp_path / "c.pt"
+    torch.save({"format": "x", "junk": torch.zeros(10)}, path)
+    with zipfile.ZipFile(path) as archive:
+        members = [(i, archive.read(i)) for i in archive.infolist()]
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
+        for info, data in members:
+            archive.writestr(info.filename, data)
+    with pytest.raises(DataError, match="has compressed members .* torch.save never writes"):
+        read_checkpoint(path)
