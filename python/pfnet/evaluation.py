@@ -239,14 +239,23 @@ def recorded_protocol(
     record = Path(pred_dir) / "predictions.json"
     if not record.is_file():
         return None
+    if record.stat().st_size > 1 << 20:  # predict writes a few hundred bytes
+        raise DataError(f"cannot read {record}: larger than 1 MB, not pfnet predict's record")
     try:
         info = json.loads(record.read_text(encoding="utf-8"))
+        stopped = info.get("complete") is False
         ratio = float(info["protocol"]["missing_ratio"])
         points = info["protocol"].get("n_points")
-        return str(info["split"]), ratio, None if points is None else int(points)
-    except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
+        recorded = str(info["split"]), ratio, None if points is None else int(points)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
         # ValueError: bad UTF-8 or JSON; RecursionError: forged nesting
         raise DataError(f"cannot read {record} ({type(err).__name__}: {str(err)[:120]})") from None
+    if stopped:
+        raise DataError(
+            f"{record} says its prediction run stopped before writing every file (the "
+            "folder may mix old and new predictions); run pfnet predict again"
+        )
+    return recorded
 
 
 def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:

@@ -121,11 +121,15 @@ def predict_split(
                 f"{folder} is a link out of the prediction folder {out}; remove it first"
             )
     out.mkdir(parents=True, exist_ok=True)
+    record = {"complete": False, "split": split, "protocol": {"missing_ratio": ratio}}
+    with atomic_path(out / "predictions.json") as tmp:  # until the last file is written,
+        tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")  # evaluate refuses it
     for category in categories:
         (out / category).mkdir(exist_ok=True)
     for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
         save_npy(out / str(cat) / f"{name}.npy", cloud)
     info = {
+        "complete": True,
         "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,

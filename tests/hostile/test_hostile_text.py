@@ -224,3 +224,65 @@ def test_a_checkpoint_with_compressed_members_is_refused_before_loading(tmp_path
             archive.writestr(info.filename, data)
     with pytest.raises(DataError, match="has compressed members .* torch.save never writes"):
         read_checkpoint(path)
+
+
+def test_an_interrupted_predict_leaves_a_record_evaluate_refuses(
+    tmp_path: Path, tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    """The seventh audit: Ctrl-C while predict rewrote a folder left new files, old files and
+    the old record, and evaluate scored the mix."""
+    pytest.importorskip("torch")
+    from forge import write_predictions
+
+    from pfnet import io as pfnet_io
+    from pfnet.cli import main
+
+    out = tmp_path / "pred"
+    base = ["predict", "--data", str(tiny_dataset), "--out", str(out), "--device", "cpu"]
+
+    write_predictions(out, tiny_dataset, record=True)  # an earlier, complete run
+    written = []
+
+    def interrupted(path, array):
+        written.append(path)
+        if len(written) == 3:
+            raise KeyboardInterrupt
+        np.save(path, array)
+
+    monkeypatch.setattr(pfnet_io, "save_npy", interrupted)
+    ckpt = _tiny_checkpoint(tmp_path, tiny_dataset)
+    assert main([*base, "--checkpoint", str(ckpt), "--missing-ratio", "0.5"]) == 130
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--data", str(tiny_dataset)]) == 1
+    assert "stopped before writing every file" in capsys.readouterr().err
+    monkeypatch.undo()
+    assert main([*base, "--checkpoint", str(ckpt), "--missing-ratio", "0.5"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--data", str(tiny_dataset)]) == 0
+
+
+def _tiny_checkpoint(tmp_path: Path, data: Path) -> Path:
+    import torch
+
+    from pfnet.checkpoint import save_checkpoint
+    from pfnet.data import load_split
+    from pfnet.models import build_model
+    from pfnet.training import preset_config
+
+    n_points = load_split(data, "test").points.shape[1]
+    config = preset_config("small").replace(model="mlp", width=0.125, n_points=n_points)
+    torch.manual_seed(0)
+    path = tmp_path / "model.pt"
+    save_checkpoint(path, {"config": config.to_dict(), "model": build_model(config).state_dict()})
+    return path
+
+
+def test_names_are_bounded_in_bytes_not_only_characters() -> None:
+    """A 200-character name of 600 bytes made predict fail with "File name too long" after
+    it had replaced some files."""
+    from pfnet.data import CloudSet
+
+    points = np.zeros((1, 8, 3), np.float32)
+    with pytest.raises(DataError, match="is longer than 200 bytes in UTF-8"):
+        CloudSet(points, np.array(["chair"]), np.array(["\u20ac" * 100]))
+    assert len(CloudSet(points, np.array(["chair"]), np.array(["e" * 200]))) == 1

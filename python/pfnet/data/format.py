@@ -66,6 +66,8 @@ def unsafe_component(text: str) -> str | None:
         return "is not a name"
     if len(text) > 200:
         return "is longer than 200 characters"
+    if len(text.encode("utf-8", "surrogatepass")) > 200:  # file names are 255 bytes at most
+        return "is longer than 200 bytes in UTF-8"
     bad = sorted({c for c in text if c in "/\\:" or ord(c) < 32 or ord(c) == 127})
     if bad:
         return f"contains {', '.join(repr(c) for c in bad)}: not allowed in a file name"
