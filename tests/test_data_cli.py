@@ -89,3 +89,12 @@ def test_prepare_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str], extr
 def test_prepare_missing_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["prepare", str(tmp_path / "nope"), "--out", str(tmp_path / "ds")]) == 1
     assert "nope: no such file or folder" in capsys.readouterr().err
+
+
+def test_prepare_names_overwrite_for_a_folder_that_is_not_empty(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / "x").write_text("mine")
+    assert main(["prepare", "procedural", "--out", str(out), "--count", "2"]) == 1
+    assert "(pass --overwrite to replace it)" in capsys.readouterr().err
+    assert (out / "x").read_text() == "mine"

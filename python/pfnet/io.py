@@ -53,7 +53,7 @@ POINT_CLOUD_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".xyz", ".pts", ".txt",
 
 
 def refuse_overlap(
-    out: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]], *, flag: str = "--out"
+    out: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]], *, flag: str = "output"
 ) -> None:
     """Refuse an output location that is, contains or lies inside one of ``inputs``.
 
@@ -85,7 +85,7 @@ def refuse_input_overwrite(
     outputs: Iterable[str | os.PathLike[str]],
     inputs: Iterable[str | os.PathLike[str]],
     *,
-    flag: str = "--out",
+    flag: str = "output",
 ) -> None:
     """Refuse output files that are input files, or existing folders, before any work.
 

@@ -65,7 +65,7 @@ class OnnxGenerator:
     def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
         from pfnet.onnx_export import FORMAT, VERSION
 
-        ort = import_onnxruntime("--runtime onnx")
+        ort = import_onnxruntime("the ONNX runtime")
         self.path = Path(path)
         options = ort.SessionOptions()
         options.log_severity_level = 3  # ORT's own warnings are not the user's business
@@ -117,7 +117,7 @@ class OnnxGenerator:
         from tqdm import tqdm
 
         if batch_size < 1:
-            raise ConfigError(f"--batch-size must be at least 1, got {batch_size}")
+            raise ConfigError(f"batch size must be at least 1, got {batch_size}")
         starts = range(0, len(partial), batch_size)
         outputs = [
             self.predict(partial[start : start + batch_size])
@@ -147,8 +147,8 @@ def _providers(ort: Any, device: str) -> list:
         raise ConfigError(f"device must be auto, cpu, cuda or cuda:N, got {device!r}")
     if not cuda:
         raise ConfigError(
-            f"device {device}: this ONNX Runtime has no CUDA (install onnxruntime-gpu, or use "
-            "--runtime torch, or --device cpu)"
+            f"device {device}: this ONNX Runtime has no CUDA (install onnxruntime-gpu, or run "
+            "on PyTorch, or on the CPU)"
         )
     return [("CUDAExecutionProvider", {"device_id": int(match.group(1) or 0)})]
 
@@ -191,11 +191,11 @@ def load_generator(
     from pfnet.shipped import resolve_checkpoint
 
     if runtime not in RUNTIMES:
-        raise ConfigError(f"--runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
+        raise ConfigError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
     source = resolve_checkpoint(checkpoint)
     is_onnx = source.suffix.lower() == ONNX_SUFFIX
     if is_onnx and runtime == "torch":
-        raise ConfigError(f"{source} is an ONNX model: run it with --runtime onnx (or auto)")
+        raise ConfigError(f"{source} is an ONNX model: it runs on ONNX Runtime, not PyTorch")
     if runtime == "torch" or (runtime == "auto" and not is_onnx and has_module("torch")):
         from pfnet.checkpoint import load_checkpoint
         from pfnet.devices import inference_device

@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() != ".onnx":
         raise ConfigError(f"--out must be a .onnx file, got {args.out}")
     source = resolve_checkpoint(args.checkpoint)
-    refuse_input_overwrite([args.out], [source])
+    refuse_input_overwrite([args.out], [source], flag="--out")
     missing = [name for name in ("torch", "onnx", "onnxscript") if not has_module(name)]
     if missing:
         raise MissingDependency(f"export needs {', '.join(missing)}: {EXPORT_EXTRA}")

@@ -4,6 +4,9 @@ procedural shapes."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from pfnet.errors import ConfigError
 
 HELP = "build a completion dataset (sampled, normalised point clouds) from a source"
 
@@ -69,6 +72,11 @@ def run(args: argparse.Namespace) -> int:
     from pfnet.data.prepare import prepare_dataset
 
     source = None if args.source == "procedural" else args.source
+    out = Path(args.out)
+    if not args.overwrite and out.is_dir() and any(out.iterdir()):
+        raise ConfigError(
+            f"--out {args.out} already exists and is not empty (pass --overwrite to replace it)"
+        )
     report = prepare_dataset(
         source,
         args.out,

@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--point-size must be in (0, {MAX_POINT_SIZE:g}], got {args.point_size}")
     inputs = [*args.files, *(t for triple in args.sample for t in triple if t != "-")]
     outputs = [path for path in (args.out, args.html) if path is not None]
-    refuse_input_overwrite(outputs, inputs)
+    refuse_input_overwrite(outputs, inputs, flag="--out/--html")
     samples = []
     for name in args.files:
         samples.append(RenderSample(label=Path(name).name))

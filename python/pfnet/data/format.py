@@ -402,9 +402,7 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
         raise DataError(f"{path}: exists and is not a folder")
     if path.is_dir() and any(path.iterdir()):
         if not overwrite:
-            raise DataError(
-                f"{path}: already exists and is not empty (pass --overwrite to replace it)"
-            )
+            raise DataError(f"{path}: already exists and is not empty (asked not to overwrite it)")
         # --overwrite deletes the folder: only ever an earlier data set and nothing else,
         # never a folder of the user's (the source's parent, a home directory, a data set
         # the user added notes to) named by mistake.
@@ -412,7 +410,7 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
             read_manifest(path)
         except DataError:
             raise DataError(
-                f"{path}: is not a pfnet data set (no readable {MANIFEST_NAME}); --overwrite "
+                f"{path}: is not a pfnet data set (no readable {MANIFEST_NAME}); overwriting "
                 "only replaces a folder that pfnet prepare wrote"
             ) from None
         ours = {MANIFEST_NAME, *(f"{split}.npz" for split in SPLITS)}
@@ -420,8 +418,8 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
         if others:
             raise DataError(
                 f"{path}: holds files pfnet prepare did not write ({', '.join(others[:3])}"
-                f"{', ...' if len(others) > 3 else ''}); --overwrite would delete them, so "
-                "move them out first or choose another --out"
+                f"{', ...' if len(others) > 3 else ''}); overwriting would delete them, so "
+                "move them out first or choose another data set folder"
             )
     # Replace the folder a symbolic link names, not the link.
     return path.resolve() if path.is_symlink() else path
