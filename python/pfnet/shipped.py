@@ -29,6 +29,12 @@ SUFFIX = ".safetensors"
 # The model `complete` and `predict` use when no --checkpoint is given.
 DEFAULT_MODEL = "sh3d-small"
 
+# The help of every command's --checkpoint: what resolve_checkpoint accepts.
+CHECKPOINT_HELP = (
+    "checkpoint (best.pt of pfnet train), model file or shipped model's name "
+    "(default: the shipped default model; see pfnet models)"
+)
+
 
 @dataclass(frozen=True)
 class ShippedModel:

@@ -12,6 +12,7 @@ from pathlib import Path
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
+from pfnet.shipped import CHECKPOINT_HELP
 
 HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
 
@@ -21,12 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "inputs", nargs="+", type=Path, metavar="INPUT", help="partial clouds to complete"
     )
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="checkpoint (best.pt of pfnet train), model file or shipped model's name "
-        "(default: the shipped default model; see pfnet models)",
-    )
+    parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
     parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)

@@ -10,6 +10,7 @@ import argparse
 from pathlib import Path
 
 from pfnet.errors import ConfigError
+from pfnet.shipped import CHECKPOINT_HELP
 
 HELP = "Export a trained generator to ONNX, to complete scans with ONNX Runtime (no PyTorch)."
 EXPORT_EXTRA = "pip install 'pfnet[export]'"
@@ -17,12 +18,7 @@ EXPORT_EXTRA = "pip install 'pfnet[export]'"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``pfnet export``."""
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="checkpoint (best.pt of pfnet train), model file or shipped model's name "
-        "(default: the shipped default model; see pfnet models)",
-    )
+    parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
     parser.add_argument("--out", type=Path, required=True, help="the .onnx file to write")
     parser.add_argument(
         "--no-check",

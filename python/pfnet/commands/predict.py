@@ -20,18 +20,14 @@ from pfnet.errors import ConfigError
 from pfnet.inference import predict_split
 from pfnet.rendering import MAX_ROWS
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
+from pfnet.shipped import CHECKPOINT_HELP
 
 HELP = "Predict the missing region of every sample of a data set split (test protocol)."
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``pfnet predict``."""
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="checkpoint (best.pt of pfnet train), model file or shipped model's name "
-        "(default: the shipped default model; see pfnet models)",
-    )
+    parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
     parser.add_argument("--data", type=Path, required=True, help="prepared data set folder")
     parser.add_argument("--split", default="test", help="split to predict (default: test)")
     parser.add_argument(
