@@ -413,7 +413,8 @@ def test_random_crop_is_seeded_and_uses_the_viewpoints():
             ValueError,
             "directions must be",
         ),
-        (lambda: g.random_crop(cloud(10), 2, seed=-1), ValueError, "seed must be a non-negative"),
+        (lambda: g.random_crop(cloud(10), 2, seed=-1), ValueError, r"seed must be an integer"),
+        (lambda: g.random_crop(cloud(10), 2, seed=2**64), ValueError, r"in \[0, 2\*\*64\)"),
     ],
 )
 def test_crop_errors(call, error, match):

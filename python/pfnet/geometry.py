@@ -301,8 +301,8 @@ def random_crop(
     """
     seed = _count("seed", seed)
     n_regions = _count("n_regions", n_regions)
-    if seed < 0:
-        raise GeometryError(f"seed must be a non-negative integer, got {seed}")
+    if not 0 <= seed < 2**64:  # reduced mod 2**64, 2**64 would be seed 0 again
+        raise GeometryError(f"seed must be an integer in [0, 2**64), got {seed}")
     if directions not in ("viewpoints", "sphere"):
         raise GeometryError(f"directions must be 'viewpoints' or 'sphere', got {directions!r}")
     limit = 5 if directions == "viewpoints" else MAX_REGIONS
@@ -312,5 +312,5 @@ def random_crop(
         )
     batched = np.ndim(points) == 3
     batch = np.shape(points)[0] if batched else 1
-    centres = _core.random_centres(seed % 2**64, batch, n_regions, directions)
+    centres = _core.random_centres(seed, batch, n_regions, directions)
     return crop_multi_region(points, centres if batched else centres[0], n_missing)

@@ -8,11 +8,13 @@ validation of ``pfnet train`` both use these two functions.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from pfnet.errors import ConfigError
 from pfnet.geometry import nearest_neighbors
 
 METRICS = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1", "f_score")
@@ -48,6 +50,11 @@ def sample_metrics(pred, gt, f_threshold: float = 0.01) -> dict[str, np.ndarray]
         two directions' mean unsquared distances) and ``f_score`` (harmonic mean of the fraction
         of predicted points within ``f_threshold`` of the ground truth and the reverse).
     """
+    if not (
+        isinstance(f_threshold, (int, float)) and math.isfinite(f_threshold) and f_threshold > 0
+    ):
+        # -1 gave every sample an F-score of 1, NaN of 0
+        raise ConfigError(f"f_threshold must be a positive finite distance, got {f_threshold!r}")
     pairs = _pairs(pred, gt)
     out = {name: np.zeros(len(pairs)) for name in METRICS}
     if not pairs:

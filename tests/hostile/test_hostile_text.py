@@ -286,3 +286,14 @@ def test_names_are_bounded_in_bytes_not_only_characters() -> None:
     with pytest.raises(DataError, match="is longer than 200 bytes in UTF-8"):
         CloudSet(points, np.array(["chair"]), np.array(["\u20ac" * 100]))
     assert len(CloudSet(points, np.array(["chair"]), np.array(["e" * 200]))) == 1
+
+
+def test_f_score_thresholds_must_be_distances() -> None:
+    from pfnet.errors import ConfigError
+    from pfnet.metrics import sample_metrics
+
+    clouds = np.random.default_rng(0).random((2, 50, 3)).astype(np.float32)
+    for bad in (-1.0, float("nan"), 0.0, float("inf")):
+        with pytest.raises(ConfigError, match="f_threshold must be a positive finite distance"):
+            sample_metrics(clouds, clouds, f_threshold=bad)
+    assert sample_metrics(clouds, clouds)["f_score"].tolist() == [1.0, 1.0]

@@ -246,6 +246,8 @@ def read_results(path: Path) -> dict[str, Any]:
         DataError: If it cannot be read or is not a study record.
     """
     try:
+        if path.stat().st_size > 64 << 20:  # a study of hundreds of runs is a few MB
+            raise ValueError("larger than 64 MB, not a study record")
         results = json.loads(path.read_text())
         if not isinstance(results, dict) or not isinstance(results.get("runs"), list):
             raise ValueError("not a study record (no list of runs)")
