@@ -22,37 +22,18 @@ float32 coordinates :func:`pfnet.io.read_point_cloud` returned.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pfnet.data.sampling import Normalisation, unit_ball
 from pfnet.errors import ConfigError, DataError
+from pfnet.rendering import PARTIAL_COLOR, PREDICTION_COLOR, rgb
 
-PARTIAL_RGB = (154, 154, 154)
-PREDICTION_RGB = (242, 194, 0)
-
-
-@dataclass
-class Normalisation:
-    """The similarity transform from a cloud's own coordinates to the unit ball.
-
-    Attributes:
-        centre: float64 ``(3,)`` subtracted first.
-        radius: The largest distance of a point from ``centre``; divided next.
-    """
-
-    centre: np.ndarray
-    radius: float
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        """``(N, 3)`` input coordinates -> float32 normalised coordinates."""
-        return ((np.asarray(points, np.float64) - self.centre) / self.radius).astype(np.float32)
-
-    def invert(self, points: np.ndarray) -> np.ndarray:
-        """``(M, 3)`` normalised coordinates -> float32 input coordinates."""
-        return (np.asarray(points, np.float64) * self.radius + self.centre).astype(np.float32)
+# The PLY outputs carry render's colours: the partial input grey, the prediction yellow.
+PARTIAL_RGB = rgb(PARTIAL_COLOR)
+PREDICTION_RGB = rgb(PREDICTION_COLOR)
 
 
 def normalisation(points: np.ndarray, source: str = "input") -> Normalisation:
@@ -61,12 +42,10 @@ def normalisation(points: np.ndarray, source: str = "input") -> Normalisation:
     Raises:
         DataError: If all points coincide (no scale to normalise by).
     """
-    pts = np.asarray(points, dtype=np.float64)
-    centre = pts.mean(axis=0)
-    radius = float(np.sqrt(((pts - centre) ** 2).sum(axis=1).max()))
-    if not radius > 0.0:
-        raise DataError(f"{source}: all {len(pts)} points coincide; nothing to complete")
-    return Normalisation(centre=centre, radius=radius)
+    transform = unit_ball(points)
+    if transform is None:
+        raise DataError(f"{source}: all {len(points)} points coincide; nothing to complete")
+    return transform
 
 
 def network_input(points: np.ndarray, n_input: int) -> np.ndarray:

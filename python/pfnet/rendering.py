@@ -31,6 +31,11 @@ GROUND_TRUTH_COLOR = "#2f6fd0"
 """Blue: the complete ground-truth cloud."""
 
 
+def rgb(color: str) -> tuple[int, int, int]:
+    """``"#rrggbb"`` as an ``(r, g, b)`` tuple of 0-255 integers."""
+    return (int(color[1:3], 16), int(color[3:5], 16), int(color[5:7], 16))
+
+
 @dataclass
 class RenderSample:
     """One gallery row: any of the three clouds may be absent.

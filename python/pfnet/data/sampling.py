@@ -8,6 +8,7 @@ number of workers or on the order the workers finish in.
 from __future__ import annotations
 
 import hashlib
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -120,11 +121,41 @@ def resample_points(
     return cloud
 
 
-def normalize(points: np.ndarray, n_reference: int | None = None) -> np.ndarray:
-    """Centre a cloud at the origin and scale it into the unit ball, as the authors do.
+@dataclass(frozen=True)
+class Normalisation:
+    """The similarity transform from a cloud's own coordinates to the unit ball.
 
-    The authors' ``pc_normalize`` subtracts the centroid (the mean of the points) and
-    divides by the largest distance to it, so every coordinate lies in ``[-1, 1]``.
+    Attributes:
+        centre: float64 ``(3,)`` subtracted first.
+        radius: The largest distance of a point from ``centre``; divided next.
+    """
+
+    centre: np.ndarray
+    radius: float
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` input coordinates -> float32 normalised coordinates."""
+        return ((np.asarray(points, np.float64) - self.centre) / self.radius).astype(np.float32)
+
+    def invert(self, points: np.ndarray) -> np.ndarray:
+        """``(M, 3)`` normalised coordinates -> float32 input coordinates."""
+        return (np.asarray(points, np.float64) * self.radius + self.centre).astype(np.float32)
+
+
+def unit_ball(points: np.ndarray) -> Normalisation | None:
+    """The authors' ``pc_normalize`` as a transform: centre at the centroid (the mean of the
+    points), divide by the largest distance to it; ``None`` when all points coincide."""
+    points = np.asarray(points, dtype=np.float64)
+    centre = points.mean(axis=0)
+    radius = float(np.sqrt(((points - centre) ** 2).sum(axis=1)).max())
+    if not (np.isfinite(radius) and radius > 0.0):
+        return None
+    return Normalisation(centre=centre, radius=radius)
+
+
+def normalize(points: np.ndarray, n_reference: int | None = None) -> np.ndarray:
+    """Centre a cloud at the origin and scale it into the unit ball, as the authors do
+    (:func:`unit_ball`), so every coordinate lies in ``[-1, 1]``.
 
     Args:
         points: ``(N, 3)``.
@@ -139,10 +170,7 @@ def normalize(points: np.ndarray, n_reference: int | None = None) -> np.ndarray:
         DataError: All points coincide (nothing to scale).
     """
     points = np.asarray(points, dtype=np.float64)
-    reference = points[:n_reference] if n_reference else points
-    centroid = reference.mean(axis=0)
-    centred = points - centroid
-    radius = float(np.sqrt(((reference - centroid) ** 2).sum(axis=1)).max())
-    if not (np.isfinite(radius) and radius > 0.0):
+    transform = unit_ball(points[:n_reference] if n_reference else points)
+    if transform is None:
         raise DataError("the shape is degenerate: all sampled points coincide")
-    return (centred / radius).astype(np.float32)
+    return transform.apply(points)
