@@ -23,6 +23,9 @@ from pfnet.errors import DataError
 MAX_LINE_BYTES = 1 << 16
 # Lines parsed at once: bounds the Python objects alive at any time.
 BLOCK_LINES = 1 << 16
+# Lines of an ASCII PLY or PCD up to the end of its points (parsed at about half a
+# microsecond each): more are refused rather than taking minutes.
+MAX_ASCII_LINES = 20_000_000
 
 
 def numbered_lines(fh: BinaryIO, file: Path, first_number: int = 1) -> Iterator[tuple[int, bytes]]:
@@ -38,6 +41,50 @@ def numbered_lines(fh: BinaryIO, file: Path, first_number: int = 1) -> Iterator[
             )
         yield number, raw
         number += 1
+
+
+def row_blocks(
+    fh: BinaryIO,
+    file: Path,
+    first_number: int,
+    count: int,
+    *,
+    skip: int = 0,
+    max_lines: int,
+    what: str,
+) -> Iterator[list[tuple[int, str]]]:
+    """The ``count`` non-blank lines after ``skip`` non-blank ones, as ``(line number, text)``
+    in blocks of at most :data:`BLOCK_LINES`; the lines after them are not read.
+
+    Raises:
+        DataError: The file ends first (naming ``what``, e.g. "PLY data"), or holds more than
+            ``max_lines`` lines, blank ones included (they take time too), before the end.
+    """
+    block: list[tuple[int, str]] = []
+    seen = taken = 0
+    if count == 0:
+        return
+    for number, raw in numbered_lines(fh, file, first_number):
+        if number - first_number >= max_lines:
+            raise DataError(
+                f"{file}: more than {max_lines} lines before the end of the points (save "
+                "large clouds in a binary format)"
+            )
+        if not raw.strip():
+            continue
+        seen += 1
+        if seen <= skip:
+            continue
+        block.append((number, raw.decode("ascii", errors="replace")))
+        taken += 1
+        if len(block) == BLOCK_LINES or taken == count:
+            yield block
+            block = []
+            if taken == count:
+                return
+    raise DataError(
+        f"{file}: truncated {what}: expected {skip + count} lines of data, found {seen}"
+    )
 
 
 def parse_block(text: str, columns: int, comments: tuple[str, ...] = ()) -> np.ndarray | None:

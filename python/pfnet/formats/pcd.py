@@ -8,7 +8,7 @@ import numpy as np
 
 from pfnet.errors import DataError
 from pfnet.formats import map_rest, read_header
-from pfnet.formats.lines import BLOCK_LINES, numbered_lines, parse_block
+from pfnet.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
 
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"}
 _PCD_TYPES.update({("I", s): f"i{s}" for s in (1, 2, 4, 8)})
@@ -92,25 +92,16 @@ def _read_pcd_ascii(file, fh, body_line, counts, n_points, columns) -> np.ndarra
     """The points of an ASCII body, a block of lines at a time; later lines unread."""
     starts = np.cumsum([0, *counts])
     parts: list[np.ndarray] = []  # not one array of n_points rows: the count may be forged
-    filled, block = 0, []
-    lines = numbered_lines(fh, file, body_line)
-    while filled < n_points:
-        for _, raw in lines:
-            if raw.strip():
-                block.append(raw.decode("ascii", errors="replace"))
-                if len(block) == min(BLOCK_LINES, n_points - filled):
-                    break
-        if not block:
-            raise DataError(f"{file}: truncated PCD data: {n_points} points, {filled} lines")
-        table = parse_block("".join(block), int(starts[-1]))
+    for block in row_blocks(
+        fh, file, body_line, n_points, max_lines=MAX_ASCII_LINES, what="PCD data"
+    ):
+        table = parse_block("".join(line for _, line in block), int(starts[-1]))
         if table is None:
             raise DataError(
                 f"{file}: malformed PCD ascii data (non-numeric values, or fewer values than "
                 "the FIELDS declare)"
             )
         parts.append(table[:, [starts[c] for c in columns]])
-        filled += len(block)
-        block = []
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
 

@@ -8,14 +8,11 @@ import numpy as np
 
 from pfnet.errors import DataError
 from pfnet.formats import map_rest, read_header
-from pfnet.formats.lines import BLOCK_LINES, numbered_lines, parse_block
+from pfnet.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
 
 # Rows of PLY elements with list properties are walked one by one in Python (about a second
 # per million): more than this many is refused rather than taking minutes.
 MAX_WALKED_ROWS = 2_000_000
-# ASCII lines are parsed at about half a microsecond each, in blocks (bounded memory): more
-# than this many is refused rather than taking minutes.
-MAX_ASCII_LINES = 20_000_000
 
 _PLY_TYPES: dict[str, str] = {
     "char": "i1",
@@ -124,34 +121,11 @@ def _read_ply_ascii(file, fh, elements, vertex_index: int, body_line: int) -> np
     _, count, props = elements[vertex_index]
     columns = [p[0] for p in props]
     axes = [columns.index("x"), columns.index("y"), columns.index("z")]
-    has_lists = any(p[2] is not None for p in props)
-    parts: list[np.ndarray] = []  # not one array of `count` rows: the count may be forged
-    filled, seen = 0, 0
-    block: list[tuple[int, str]] = []
-    lines = numbered_lines(fh, file, body_line)
-    while filled < count:
-        for number, raw in lines:
-            if number - body_line >= MAX_ASCII_LINES:  # blank lines count: they take time
-                raise DataError(
-                    f"{file}: more than {MAX_ASCII_LINES} lines before the end of the "
-                    "vertices (save large clouds as binary PLY)"
-                )
-            if not raw.strip():
-                continue  # blank lines are not elements
-            seen += 1
-            if seen > skip:
-                block.append((number, raw.decode("ascii", errors="replace")))
-                if len(block) == min(BLOCK_LINES, count - filled):
-                    break
-        if not block:
-            raise DataError(
-                f"{file}: truncated PLY data: expected {skip + count} element lines before the "
-                f"end of the vertices, found {seen}"
-            )
-        parse = _ply_list_rows if has_lists else _ply_table_rows
-        parts.append(parse(file, block, props, axes))
-        filled += len(block)
-        block = []
+    parse = _ply_list_rows if any(p[2] is not None for p in props) else _ply_table_rows
+    blocks = row_blocks(
+        fh, file, body_line, count, skip=skip, max_lines=MAX_ASCII_LINES, what="PLY data"
+    )
+    parts = [parse(file, block, props, axes) for block in blocks]
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
 
