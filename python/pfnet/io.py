@@ -87,7 +87,7 @@ def refuse_input_overwrite(
     *,
     flag: str = "output",
 ) -> None:
-    """Refuse output files that are input files, or existing folders, before any work.
+    """Refuse output files that are input files, folders, devices or pipes, before any work.
 
     Raises:
         ConfigError: Naming the output and the input it would replace.
@@ -97,6 +97,9 @@ def refuse_input_overwrite(
         path = Path(output)
         if path.is_dir():
             raise ConfigError(f"{flag}: {path} is a folder; name a file to write")
+        if path.exists() and not path.is_file() and not path.is_symlink():
+            # what is written replaces what is there: never a device or a pipe
+            raise ConfigError(f"{flag}: {path} exists and is not a regular file")
         if path.resolve() in sources:
             raise ConfigError(
                 f"{flag}: writing {path} would overwrite the input "
@@ -123,11 +126,7 @@ def check_report_path(
     Raises:
         ConfigError: Naming the flag and the file.
     """
-    refuse_input_overwrite([output], [], flag=flag)  # not a folder
-    target = Path(output)
-    if target.exists() and not target.is_file() and not target.is_symlink():
-        # the report replaces what is there: never a device or a pipe
-        raise ConfigError(f"{flag}: {output} exists and is not a regular file")
+    refuse_input_overwrite([output], [], flag=flag)  # not a folder, a device or a pipe
     for item in inputs:
         if Path(item).is_file():
             refuse_input_overwrite([output], [item], flag=flag)
