@@ -59,17 +59,17 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the predictions")
-    if args.gallery is not None and not 1 <= args.gallery_count <= MAX_ROWS:
-        # checked before the work: 1,000 rows once failed after every prediction was made
-        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
     if args.gallery is not None:  # before predicting: never over the data or the checkpoint
+        from pfnet.data.format import split_categories
         from pfnet.io import check_report_path
         from pfnet.shipped import resolve_checkpoint
 
+        if not 1 <= args.gallery_count <= MAX_ROWS:  # 1,000 rows once failed after the work
+            raise ConfigError(
+                f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}"
+            )
         if args.gallery.suffix.lower() not in (".png", ".html"):
             raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
-        from pfnet.data.format import split_categories
-
         inputs = [args.data, resolve_checkpoint(args.checkpoint)]
         categories = split_categories(args.data, args.split)  # the folders to come
         check_report_path(args.gallery, args.out, inputs, flag="--gallery", categories=categories)
