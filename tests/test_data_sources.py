@@ -77,7 +77,7 @@ def _add_bad_files(root: Path) -> dict[str, str]:
         "empty.obj": "the mesh has no vertices",
         "nan.obj": "NaN or infinite",
         "flat.obj": "zero surface area",
-        "junk.ply": "cannot read",
+        "junk.ply": "not a PLY file",
         "nopoints.xyz": "no points",
     }
 

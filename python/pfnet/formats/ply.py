@@ -47,7 +47,7 @@ def read_ply(file: Path) -> np.ndarray:
         if magic.strip() != b"ply":
             raise DataError(f"{file}: not a PLY file (first line is not 'ply')")
         header = read_header(fh, file, b"end_header")
-        elements, fmt = _parse_header(file, header)
+        elements, fmt = parse_header(file, header)
         vertex_index = [e[0] for e in elements].index("vertex")
         if fmt == "ascii":
             body_line = len(header) + 2  # after "ply" and the header's lines
@@ -56,8 +56,12 @@ def read_ply(file: Path) -> np.ndarray:
         return _read_ply_binary(file, map_rest(fh), elements, vertex_index, endian)
 
 
-def _parse_header(file: Path, header: list[str]) -> tuple[list, str]:
-    """The elements ``(name, count, [(property, dtype, list count dtype or None)])`` and format."""
+def parse_header(file: Path, header: list[str]) -> tuple[list, str]:
+    """The elements ``(name, count, [(property, dtype, list count dtype or None)])`` and format.
+
+    Raises:
+        DataError: A malformed header, or one without a vertex element with ``x y z``.
+    """
     fmt = None
     elements: list[tuple[str, int, list[tuple[str, str, str | None]]]] = []
     for line in header[:-1]:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from pfnet.data.sources import Geometry, Scan, ShapeItem, safe_name, unique_names
 from pfnet.errors import DataError
+from pfnet.formats.meshes import check_mesh_file
 
 __all__ = ["CLOUD_SUFFIXES", "MESH_SUFFIXES", "load_mesh_file", "looks_like", "scan"]
 
@@ -82,17 +83,23 @@ def scan(root: Path) -> Scan:
 def load_mesh_file(path: str) -> Geometry:
     """Read a mesh with trimesh (scenes are flattened with their transforms).
 
-    A ``.ply`` without faces is read as a point cloud with :func:`pfnet.io.read_point_cloud`.
+    The file is first checked against the bounds of :mod:`pfnet.formats.meshes` (size, lines,
+    declared counts), so that trimesh's time and memory follow the geometry. A ``.ply``
+    without faces is read as a point cloud with :func:`pfnet.io.read_point_cloud`.
 
     Args:
         path: The file.
 
     Returns:
         The mesh, or the point cloud.
+
+    Raises:
+        DataError: The file breaks a bound, naming it and the bound.
     """
     import numpy as np
     import trimesh
 
+    check_mesh_file(Path(path))
     suffix = Path(path).suffix.lower()
     options = {"skip_materials": True} if suffix == ".obj" else {}
     mesh = trimesh.load(path, force="mesh", process=False, **options)
