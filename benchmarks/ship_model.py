@@ -27,7 +27,7 @@ from pfnet.shipped import SUFFIX, WEIGHTS_DIR, write_shipped
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("checkpoint", type=Path, help="best.pt of pfnet train, or a model file")
     parser.add_argument("--name", required=True)
     parser.add_argument("--train-data", type=Path, required=True, help="data set it trained on")
     parser.add_argument("--test-data", type=Path, required=True, help="data set to score on")

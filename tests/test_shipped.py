@@ -73,6 +73,17 @@ def test_model_file_round_trip_matches_the_checkpoint_within_float16(
     assert path.stat().st_size < 0.6 * checkpoint.stat().st_size
 
 
+def test_a_model_file_gets_a_new_card_and_keeps_its_weights(
+    tmp_path: Path, checkpoint: Path
+) -> None:
+    first = write_shipped(checkpoint, tmp_path / "first.safetensors", card=CARD)
+    card = {"summary": "the same weights, measured again"}
+    second = write_shipped(first, tmp_path / "second.safetensors", card=card)
+    assert read_metadata(second) == (read_metadata(first)[0], card)
+    a, b = pfnet.shipped.load_weights(first), pfnet.shipped.load_weights(second)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_names_resolve_to_shipped_files_and_paths_win(weights_dir: Path, tmp_path: Path) -> None:
     assert resolve_checkpoint("tiny") == weights_dir / "tiny.safetensors"
     assert resolve_checkpoint(None) == weights_dir / f"{DEFAULT_MODEL}.safetensors"

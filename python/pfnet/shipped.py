@@ -135,7 +135,9 @@ def write_shipped(
     """Write a training checkpoint's generator as a model file (float tensors as float16).
 
     Args:
-        checkpoint: ``best.pt`` or ``last.pt`` of ``pfnet train``.
+        checkpoint: ``best.pt`` or ``last.pt`` of ``pfnet train``, or a model file (its weights
+            and config are kept and its card replaced: how a model trained elsewhere, e.g. on a
+            GPU machine that returns only small files, gets the card measured here).
         out: The ``.safetensors`` file to write (atomically).
         card: The model card to store (data, recipe, metrics), JSON-serialisable.
     """
@@ -148,7 +150,11 @@ def write_shipped(
     out = Path(out)
     if not out.name.endswith(SUFFIX):
         raise ConfigError(f"a model file must end in {SUFFIX}, got {out}")
-    state = read_checkpoint(checkpoint)
+    if Path(checkpoint).name.endswith(SUFFIX):
+        config, _ = read_metadata(checkpoint)
+        state = {"config": config, "model": load_weights(checkpoint)}
+    else:
+        state = read_checkpoint(checkpoint)
     tensors = {
         key: (value.half() if value.is_floating_point() else value).contiguous()
         for key, value in state["model"].items()
