@@ -1,5 +1,6 @@
-//! A KD-tree for exact nearest-one queries in 3-D that stays O(log n) per query on degenerate
-//! clouds.
+//! A KD-tree for exact nearest-one queries in 3-D that stays near O(log n) per query on
+//! degenerate clouds (not when a query is equidistant from most points, e.g. the centre of a
+//! sphere of points, which no KD-tree prunes).
 //!
 //! It replaces kiddo's `ImmutableKdTree`, which is fast on well-spread clouds but went quadratic
 //! on three kinds of plausible input (issue 14):
