@@ -118,6 +118,42 @@ def test_chamfer_duplicates(benchmark, kind, tool):
     assert np.isfinite(result[0])
 
 
+def degenerate_pair(layout: str, n: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
+    """(query, reference) on which kiddo's KD-tree, used before issue 14, went quadratic."""
+    rng = np.random.default_rng(14)
+    if layout == "collinear":
+        line = np.zeros((n, 3), np.float32)
+        line[:, 0] = np.arange(n) / n
+        return line, line
+    if layout == "far queries":
+        reference = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+        return reference + np.float32(100), reference
+    if layout == "tiny":  # float32 squared distances underflow to 0
+        tiny = (rng.random((n, 3)) * 1e-25).astype(np.float32)
+        return tiny, tiny
+    subnormal = (rng.random((n, 3)) * 1e-40).astype(np.float32)
+    subnormal[-1] = 1e17
+    return subnormal, subnormal
+
+
+def ckdtree_nearest(query, reference):
+    return cKDTree(reference).query(query, k=1, workers=-1)
+
+
+DEGENERATE = ["collinear", "far queries", "tiny", "subnormal and one huge point"]
+
+
+# Before issue 14 pfnet took 1.4 s, 2.0 s, 10 s and 19 s on these (scipy 0.04-0.1 s).
+@pytest.mark.parametrize("layout", DEGENERATE)
+@pytest.mark.parametrize("tool", ["pfnet", "scipy-ckdtree"])
+def test_nearest_degenerate(benchmark, layout, tool):
+    benchmark.group = f"nearest neighbours 100k, {layout}"
+    query, reference = degenerate_pair(layout)
+    fn = {"pfnet": g.nearest_neighbors, "scipy-ckdtree": ckdtree_nearest}[tool]
+    distances, _ = benchmark(fn, query, reference)
+    assert len(distances) == len(query)
+
+
 # ------------------------------------------------------------------ crop
 def numpy_crop(points, viewpoint, n_missing):
     d = ((points - viewpoint) ** 2).sum(axis=1)

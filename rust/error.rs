@@ -116,9 +116,9 @@ pub const MAX_COORDINATE: f64 = 1e18;
 
 /// The most points one cloud may hold, `u32::MAX` (4,294,967,295). The kernels store point
 /// indices and counts as `u32` (half the memory of `usize`): the sampling tree's order and node
-/// ranges, the nearest-neighbour tree's items (kiddo's tree panics beyond `u32`), the crop's
-/// candidate lists and histogram. Every public entry point checks its clouds against this bound
-/// ([`check_point_count`]) before any of those casts. A batch may hold any number of clouds.
+/// ranges, the nearest-neighbour tree's items, the crop's candidate lists and histogram. Every
+/// public entry point checks its clouds against this bound ([`check_point_count`]) before any of
+/// those casts. A batch may hold any number of clouds.
 pub const MAX_POINTS: usize = u32::MAX as usize;
 
 /// Reject a cloud of `points` points that is empty or larger than [`MAX_POINTS`].

@@ -10,6 +10,7 @@ pub mod chamfer;
 pub mod crop;
 pub mod error;
 pub mod fps;
+mod kdtree;
 pub mod nn;
 
 #[cfg(feature = "python")]

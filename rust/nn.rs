@@ -1,28 +1,30 @@
-//! Exact nearest neighbours with a KD-tree (kiddo's `ImmutableKdTree`, the fastest Rust tree we
-//! measured for 3-D nearest-one queries).
+//! Exact nearest neighbours with a KD-tree of our own ([`crate::kdtree`]), which stays fast on
+//! collinear and planar clouds, far queries and clouds too small or too spread for float32.
 
 use std::collections::hash_map::{Entry, HashMap};
 use std::hash::{BuildHasherDefault, Hasher};
+use std::marker::PhantomData;
 
-use kiddo::immutable::float::kdtree::ImmutableKdTree;
-use kiddo::SquaredEuclidean;
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_point_count, Result};
+use crate::kdtree::{self, KdTree};
 
 /// Below this many queries a single thread answers faster than a split across the pool.
 const PARALLEL_MIN_QUERIES: usize = 4096;
 
 /// A KD-tree over a reference cloud, answering nearest-one queries.
 ///
-/// The tree holds each distinct point once: a leaf of equal points cannot be split, so a cloud
-/// of 100,000 copies of one point made every query scan them all (17 s for 100k identical
-/// points against 9 ms for 40k random ones). Duplicates map back to their lowest index.
+/// The answer is the reference point with the smallest float32 squared distance
+/// `dx*dx + dy*dy + dz*dz`; among equal float32 distances (which rounding and underflow make
+/// common on tiny clouds) the nearest in float64, then the lowest index. The tree holds each
+/// distinct point once: copies of one point all tie, so a cloud of 100,000 of them made every
+/// query scan them all (17 s for 100k identical points against 9 ms for 40k random ones).
+/// Duplicates map back to their lowest index.
 pub struct NearestNeighborIndex<'a> {
-    tree: ImmutableKdTree<f32, u32, 3, 32>,
-    reference: &'a [[f32; 3]],
-    /// With duplicates: the reference index of the tree's k-th point (its first occurrence).
-    original: Option<Vec<u32>>,
+    tree: KdTree,
+    /// The index may borrow the reference cloud again in the future; callers already keep it.
+    reference: PhantomData<&'a [[f32; 3]]>,
 }
 
 /// A fast, deterministic hasher for the bit patterns of coordinates (std's SipHash is several
@@ -65,34 +67,34 @@ fn distinct_points(reference: &[[f32; 3]]) -> Option<(Vec<[f32; 3]>, Vec<u32>)> 
 impl<'a> NearestNeighborIndex<'a> {
     /// Build the tree; `reference` must be non-empty, finite and hold at most
     /// [`MAX_POINTS`](crate::error::MAX_POINTS) points, as [`nearest_neighbors`] checks (indices
-    /// are `u32`; kiddo's tree panics beyond that).
+    /// are `u32`).
     pub fn new(reference: &'a [[f32; 3]]) -> Self {
-        match distinct_points(reference) {
-            None => NearestNeighborIndex {
-                tree: ImmutableKdTree::new_from_slice(reference),
-                reference,
-                original: None,
-            },
-            Some((points, original)) => NearestNeighborIndex {
-                tree: ImmutableKdTree::new_from_slice(&points),
-                reference,
-                original: Some(original),
-            },
+        let entries = match distinct_points(reference) {
+            None => reference
+                .iter()
+                .enumerate()
+                .map(|(i, &point)| kdtree::Entry {
+                    point,
+                    item: i as u32,
+                })
+                .collect(),
+            Some((points, original)) => points
+                .into_iter()
+                .zip(original)
+                .map(|(point, item)| kdtree::Entry { point, item })
+                .collect(),
+        };
+        NearestNeighborIndex {
+            tree: KdTree::new(entries, crate::parallel_allowed()),
+            reference: PhantomData,
         }
     }
 
-    /// Squared distance to, and index of, the nearest reference point of `q`.
+    /// Squared distance to, and index of, the nearest reference point of `q`. The distance is
+    /// `dx*dx + dy*dy + dz*dz` in float32, in that order, so every caller sees the same value.
     #[inline]
     pub fn nearest(&self, q: &[f32; 3]) -> (f32, u32) {
-        let found = self.tree.nearest_one::<SquaredEuclidean>(q);
-        let item = match &self.original {
-            Some(original) => original[found.item as usize],
-            None => found.item,
-        };
-        let r = self.reference[item as usize];
-        // Recompute in the plain order so every caller sees the same float32 value.
-        let (dx, dy, dz) = (q[0] - r[0], q[1] - r[1], q[2] - r[2]);
-        (dx * dx + dy * dy + dz * dz, item)
+        self.tree.nearest(q)
     }
 
     /// Answer every query into `sq_dist`/`index`; in parallel when `parallel` and there are many.
@@ -235,6 +237,109 @@ mod tests {
         let all_same = vec![[1.0f32, 2.0, 3.0]; 100_000];
         let (d, i) = nearest_neighbors(&all_same, &all_same).unwrap();
         assert!(d.iter().all(|&x| x == 0.0) && i.iter().all(|&x| x == 0));
+    }
+
+    /// Brute force in the index's full order: float32 distance, then float64, then index.
+    fn naive_in_answer_order(query: &[[f32; 3]], reference: &[[f32; 3]]) -> (Vec<f32>, Vec<u32>) {
+        query
+            .iter()
+            .map(|q| {
+                let key = |i: usize| {
+                    let r = reference[i];
+                    let (dx, dy, dz) = (q[0] - r[0], q[1] - r[1], q[2] - r[2]);
+                    let exact = [0, 1, 2].map(|d| f64::from(q[d]) - f64::from(r[d]));
+                    let d64 = exact[0] * exact[0] + exact[1] * exact[1] + exact[2] * exact[2];
+                    (dx * dx + dy * dy + dz * dz, d64, i)
+                };
+                let best = (0..reference.len())
+                    .map(key)
+                    .min_by(|a, b| a.partial_cmp(b).unwrap())
+                    .unwrap();
+                (best.0, best.2 as u32)
+            })
+            .unzip()
+    }
+
+    type Cloud = Vec<[f32; 3]>;
+
+    /// Degenerate layouts that made kiddo's tree quadratic (issue 14): name, reference, queries.
+    fn degenerate_layouts(n: usize) -> Vec<(&'static str, Cloud, Cloud)> {
+        let random = cloud(n, 5, false);
+        let t: Vec<f32> = (0..n).map(|i| i as f32 / n as f32).collect();
+        let collinear: Vec<[f32; 3]> = t.iter().map(|&x| [x, 0.0, 0.0]).collect();
+        let diagonal: Vec<[f32; 3]> = t.iter().map(|&x| [x, 2.0 * x, -0.5 * x]).collect();
+        let planar: Vec<[f32; 3]> = random.iter().map(|p| [p[0], p[1], 0.25]).collect();
+        let scaled =
+            |s: f32| -> Vec<[f32; 3]> { random.iter().map(|p| p.map(|c| c * s)).collect() };
+        let far = random.iter().map(|p| p.map(|c| c + 100.0)).collect();
+        let mut subnormal_and_huge = scaled(1e-40);
+        subnormal_and_huge[n / 2] = [1e17, 0.0, 0.0];
+        let mut mixed = scaled(1e-30);
+        mixed.extend(scaled(1e17).into_iter().take(n / 4));
+        let shifted = |c: &[[f32; 3]], by: f32| -> Vec<[f32; 3]> {
+            c.iter().map(|p| p.map(|v| v + by)).collect()
+        };
+        vec![
+            ("collinear", collinear.clone(), collinear.clone()),
+            (
+                "collinear, queries off the line",
+                collinear.clone(),
+                cloud(n, 6, false),
+            ),
+            ("diagonal", diagonal.clone(), shifted(&diagonal, 1e-3)),
+            ("planar", planar.clone(), planar.clone()),
+            ("far queries", random.clone(), far),
+            ("underflowing squares", scaled(1e-25), scaled(1e-25)),
+            (
+                "underflowing, other queries",
+                scaled(1e-25),
+                cloud(n, 7, false)
+                    .iter()
+                    .map(|p| p.map(|c| c * 1e-25))
+                    .collect(),
+            ),
+            (
+                "subnormal cluster and a huge point",
+                subnormal_and_huge.clone(),
+                subnormal_and_huge,
+            ),
+            ("tiny and huge", mixed.clone(), shifted(&mixed, 1e-30)),
+            (
+                "grid with ties",
+                cloud(n, 8, true),
+                shifted(&cloud(n, 9, true), 0.5),
+            ),
+        ]
+    }
+
+    #[test]
+    fn degenerate_layouts_match_brute_force_in_answer_order() {
+        for (name, reference, query) in degenerate_layouts(2000) {
+            let (d, i) = nearest_neighbors(&query, &reference).unwrap();
+            let (d_naive, _) = nearest_neighbors_naive(&query, &reference);
+            assert_eq!(d, d_naive, "{name}: float32 distances");
+            assert_eq!((d, i), naive_in_answer_order(&query, &reference), "{name}");
+        }
+    }
+
+    #[test]
+    fn random_clouds_match_brute_force_in_answer_order() {
+        let (q, r) = (cloud(3000, 10, false), cloud(5000, 11, false));
+        let (d, i) = nearest_neighbors(&q, &r).unwrap();
+        assert_eq!((d, i), naive_in_answer_order(&q, &r));
+    }
+
+    #[test]
+    fn a_cloud_far_too_small_for_float32_squares_answers_each_point_with_itself() {
+        // Every float32 distance is 0, so the float64 distance decides: each point is its own
+        // nearest, as scipy answers in float64.
+        let tiny: Vec<[f32; 3]> = cloud(50_000, 12, false)
+            .iter()
+            .map(|p| p.map(|c| c * 1e-25))
+            .collect();
+        let (d, i) = nearest_neighbors(&tiny, &tiny).unwrap();
+        assert!(d.iter().all(|&x| x == 0.0));
+        assert!(i.iter().enumerate().all(|(k, &x)| x as usize == k));
     }
 
     #[test]

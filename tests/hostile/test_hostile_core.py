@@ -80,6 +80,79 @@ def test_duplicate_points_give_exact_distances_and_first_indices() -> None:
     assert chamfer(identical, identical) == (0.0, 0.0)
 
 
+def _degenerate_layouts(n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(query, reference) pairs on which kiddo's tree went quadratic (issue 14): at 100k points
+    1.4 s (collinear), 2.0 s (far queries), 10 s (tiny) and 19 s (subnormal) on 2 cores."""
+    rng = np.random.default_rng(14)
+    uniform = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    line = np.zeros((n, 3), np.float32)
+    line[:, 0] = np.arange(n) / n
+    planar = uniform.copy()
+    planar[:, 2] = 0.25
+    tiny = (rng.random((n, 3)) * 1e-25).astype(np.float32)  # float32 squares underflow to 0
+    subnormal = (rng.random((n, 3)) * 1e-40).astype(np.float32)
+    subnormal[n // 2] = 1e17
+    return {
+        "collinear": (line, line),
+        "planar": (planar, planar),
+        "far queries": (uniform + np.float32(100), uniform),
+        "tiny": (tiny, tiny),
+        "tiny, other queries": ((rng.random((n, 3)) * 1e-25).astype(np.float32), tiny),
+        "subnormal cluster and a huge point": (subnormal, subnormal),
+    }
+
+
+def _nearest_in_answer_order(query: np.ndarray, reference: np.ndarray):
+    """Brute force in the core's order: the float32 squared distance ``dx*dx + dy*dy + dz*dz``,
+    then (among equal ones) the float64 distance, then the lowest index."""
+    distances, indices = [], []
+    for q in np.array_split(query, -(-len(query) // 32)):
+        diff = q[:, None, :] - reference[None, :, :]
+        d32 = (
+            diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1] + diff[..., 2] * diff[..., 2]
+        )
+        exact = q[:, None, :].astype(np.float64) - reference[None, :, :].astype(np.float64)
+        d64 = (exact**2).sum(-1)
+        best = d32.min(axis=1, keepdims=True)
+        d64 = np.where(d32 == best, d64, np.inf)
+        indices.append(np.argmax(d64 == d64.min(axis=1, keepdims=True), axis=1))
+        distances.append(best[:, 0])
+    return np.concatenate(distances), np.concatenate(indices)
+
+
+@pytest.mark.parametrize("layout", list(_degenerate_layouts(8)))
+def test_degenerate_layouts_give_the_brute_force_answers(layout: str) -> None:
+    query, reference = _degenerate_layouts(3000)[layout]
+    distances, index = nearest_neighbors(query, reference)
+    expected = _nearest_in_answer_order(query, reference)
+    np.testing.assert_array_equal(distances, expected[0])
+    np.testing.assert_array_equal(index, expected[1])
+
+
+@pytest.mark.parametrize("layout", list(_degenerate_layouts(8)))
+def test_degenerate_layouts_at_100k_points(layout: str) -> None:
+    # Seconds each before issue 14, milliseconds now; checked exactly on a sample of queries.
+    query, reference = _degenerate_layouts(100_000)[layout]
+    distances, index = nearest_neighbors(query, reference)
+    diff = query - reference[index]
+    np.testing.assert_array_equal(
+        distances, diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]
+    )
+    sample = np.random.default_rng(1).choice(len(query), 96, replace=False)
+    expected = _nearest_in_answer_order(query[sample], reference)
+    np.testing.assert_array_equal(distances[sample], expected[0])
+    np.testing.assert_array_equal(index[sample], expected[1])
+
+
+def test_chamfer_of_degenerate_clouds_with_themselves_is_zero() -> None:
+    # 8.7 s (collinear, 300k) and over 120 s (tiny, 200k) before issue 14.
+    line = np.zeros((300_000, 3), np.float32)
+    line[:, 0] = np.arange(300_000) / 300_000
+    tiny = (np.random.default_rng(3).random((200_000, 3)) * 1e-25).astype(np.float32)
+    assert chamfer(line, line) == (0.0, 0.0)
+    assert chamfer(tiny, tiny) == (0.0, 0.0)
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf, 1e19, 1e300])
 @pytest.mark.parametrize("size", [{"radius": 0.5}, {"n_missing": 4}])
 def test_both_crop_sizes_check_every_coordinate(value: float, size: dict) -> None:
