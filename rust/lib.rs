@@ -1,6 +1,7 @@
 //! pfnet's geometry core: exact iterative farthest point sampling, KD-tree nearest neighbours and
-//! Chamfer metrics, and viewpoint cropping. The modules are plain Rust (no Python types); the
-//! `python` feature adds the one binding module that exposes them as `pfnet._core`.
+//! Chamfer metrics, and viewpoint cropping; plus LZF decompression for the PCD reader. The
+//! modules are plain Rust (no Python types); the `python` feature adds the one binding module
+//! that exposes them as `pfnet._core`.
 //!
 //! Every entry point checks its input and returns [`GeometryError`] instead of panicking
 //! ([`NearestNeighborIndex::new`] expects a checked cloud); a cloud may hold at most
@@ -10,6 +11,7 @@ pub mod chamfer;
 pub mod crop;
 pub mod error;
 pub mod fps;
+pub mod lzf;
 pub mod nn;
 
 #[cfg(feature = "python")]
@@ -32,4 +34,5 @@ pub use crop::{
 };
 pub use error::{GeometryError, MAX_COORDINATE, MAX_POINTS};
 pub use fps::{farthest_point_sample, farthest_point_sample_naive};
+pub use lzf::lzf_decompress;
 pub use nn::{nearest_neighbors, nearest_neighbors_naive, NearestNeighborIndex};
