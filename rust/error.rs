@@ -40,6 +40,13 @@ pub enum GeometryError {
         what: &'static str,
         sizes: (usize, usize),
     },
+    /// Encoded data (`arg`: "LZF data") that cannot be decoded; `offset` is the input byte at
+    /// fault.
+    Corrupt {
+        arg: &'static str,
+        offset: usize,
+        message: String,
+    },
 }
 
 impl GeometryError {
@@ -100,6 +107,11 @@ impl fmt::Display for GeometryError {
                 f,
                 "{arg} and {other} must have the same {what}, got {a} and {b}"
             ),
+            GeometryError::Corrupt {
+                arg,
+                offset,
+                message,
+            } => write!(f, "{arg} is corrupt at byte {offset}: {message}"),
         }
     }
 }

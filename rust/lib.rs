@@ -1,6 +1,7 @@
 //! pfnet's geometry core: exact iterative farthest point sampling, KD-tree nearest neighbours and
-//! Chamfer metrics, and viewpoint cropping. The modules are plain Rust (no Python types); the
-//! `python` feature adds the one binding module that exposes them as `pfnet._core`.
+//! Chamfer metrics, and viewpoint cropping; plus LZF decompression for the PCD reader. The
+//! modules are plain Rust (no Python types); the `python` feature adds the one binding module
+//! that exposes them as `pfnet._core`.
 //!
 //! Every entry point checks its input and returns [`GeometryError`] instead of panicking
 //! ([`NearestNeighborIndex::new`] expects a checked cloud); a cloud may hold at most
@@ -11,6 +12,7 @@ pub mod crop;
 pub mod error;
 pub mod fps;
 mod kdtree;
+pub mod lzf;
 pub mod nn;
 
 #[cfg(feature = "python")]
@@ -33,4 +35,5 @@ pub use crop::{
 };
 pub use error::{GeometryError, MAX_COORDINATE, MAX_POINTS};
 pub use fps::{farthest_point_sample, farthest_point_sample_naive};
+pub use lzf::lzf_decompress;
 pub use nn::{nearest_neighbors, nearest_neighbors_naive, NearestNeighborIndex};

@@ -9,8 +9,8 @@
 
 use numpy::ndarray::{Array1, Array2, Array3};
 use numpy::{
-    Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray, PyReadonlyArray2,
-    PyReadonlyArray3, PyUntypedArrayMethods,
+    Element, IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray, PyReadonlyArray1,
+    PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 use rayon::prelude::*;
@@ -19,6 +19,7 @@ use crate::chamfer::{chamfer, chamfer_batch};
 use crate::crop::{self, CropSize, Directions};
 use crate::error::{check_finite, check_point_count, GeometryError, MAX_POINTS};
 use crate::fps;
+use crate::lzf;
 use crate::nn::{validate_pair, NearestNeighborIndex};
 
 /// Two arrays returned together: (partial, missing), (sq_dist, index), (pred_to_gt, gt_to_pred).
@@ -383,6 +384,18 @@ fn random_centres<'py>(
     Ok(out.into_pyarray(py))
 }
 
+/// LZF `data` (PCD `binary_compressed`) expanded to exactly `size` bytes, as uint8 (size,).
+#[pyfunction]
+fn lzf_decompress<'py>(
+    py: Python<'py>,
+    data: PyReadonlyArray1<'py, u8>,
+    size: usize,
+) -> PyResult<Bound<'py, PyArray1<u8>>> {
+    let input = c_order("data", &data)?;
+    let out = py.detach(|| lzf::lzf_decompress(input, size))?;
+    Ok(Array1::from_vec(out).into_pyarray(py))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(farthest_point_sample, m)?)?;
@@ -395,6 +408,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(crop_multi_f32, m)?)?;
     m.add_function(wrap_pyfunction!(crop_multi_f64, m)?)?;
     m.add_function(wrap_pyfunction!(random_centres, m)?)?;
+    m.add_function(wrap_pyfunction!(lzf_decompress, m)?)?;
     m.add("MAX_REGIONS", crop::MAX_REGIONS)?;
     m.add("MAX_COORDINATE", crate::error::MAX_COORDINATE)?;
     m.add("MAX_POINTS", MAX_POINTS)?;

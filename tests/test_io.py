@@ -232,7 +232,7 @@ def test_pcd_binary_compressed_long_back_reference(tmp_path):
     head = _pcd("x y z", "4 4 4", "F F F", "1 1 1", 3, "binary_compressed")
     path = tmp_path / "z.pcd"
     path.write_bytes(head + struct.pack("<II", len(payload), 36) + payload)
-    with pytest.raises(DataError, match=r"z\.pcd: corrupt .* \(expands beyond the declared 36"):
+    with pytest.raises(DataError, match=r"z\.pcd: corrupt .*: expands beyond the declared 36"):
         read_point_cloud(path)
     payload = bytes([0, 0, 7 << 5, 26, 0])  # 1 + 35 = 36 bytes
     path.write_bytes(head + struct.pack("<II", len(payload), 36) + payload)

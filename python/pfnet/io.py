@@ -15,8 +15,11 @@
   fields. Points with a NaN coordinate are dropped: PCL marks the invalid points of an
   organised cloud that way.
 
-Every problem (missing file, unknown suffix, truncated or malformed data, no points,
-NaN/inf coordinates) raises :class:`~pfnet.errors.DataError` naming the file and the reason.
+A cloud may hold at most :data:`~pfnet.formats.MAX_CLOUD_POINTS` (50,000,000) points, and a
+text one at most :data:`~pfnet.formats.lines.MAX_ASCII_LINES` lines up to its last point.
+Every problem (missing file, unknown suffix, truncated or malformed data, too many points,
+no points, NaN/inf coordinates) raises :class:`~pfnet.errors.DataError` naming the file and
+the reason.
 Writers go through :func:`atomic_path`, so a crash never leaves a half-written file.
 """
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import io
+import os
 import signal
 import struct
 import zipfile
@@ -278,6 +279,12 @@ def _pcd(path: Path, fields: str, data: str, body: bytes) -> Path:
     return path
 
 
+def _sparse(path: Path, head: bytes, size: int) -> Path:
+    path.write_bytes(head)
+    os.truncate(path, size)  # zeros that take no disk
+    return path
+
+
 def _malformed_files(folder: Path) -> dict[str, tuple[Path, str]]:
     """Each file with the message its reading must give (none may parse)."""
     bin_le = "format binary_little_endian 1.0\n"
@@ -343,7 +350,26 @@ def _malformed_files(folder: Path) -> dict[str, tuple[Path, str]]:
                 "property list uchar int ids\nelement vertex 1\n" + xyz_float,
                 bytes(3_000_000) + np.zeros(3, "<f4").tobytes(),
             ),
-            "walks at most",
+            "list lengths to read before the vertices",
+        ),
+        # the eighth audit's: a gigabyte first line, COUNT 10^8, 10^8 honest vertices (sparse)
+        "magic.ply": (_sparse(folder / "magic.ply", b"plyx", 2**30), "not a PLY file"),
+        "values.pcd": (
+            _pcd(
+                folder / "values.pcd",
+                "FIELDS x y z w\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 100000000\nPOINTS 1\n",
+                "ascii",
+                b"1 2 3 4\n",
+            ),
+            "declares 100000003 values a point",
+        ),
+        "many.ply": (
+            _sparse(
+                folder / "many.ply",
+                f"ply\n{bin_le}element vertex 100000000\n{xyz_float}end_header\n".encode(),
+                1_200_000_200,
+            ),
+            "declares 100000000 points; pfnet reads at most 50,000,000",
         ),
         "underscore.xyz": (folder / "underscore.xyz", "is not numeric"),
         "huge.xyz": (folder / "huge.xyz", "coordinates beyond"),

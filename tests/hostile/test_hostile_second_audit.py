@@ -187,7 +187,7 @@ def test_walked_ply_rows_are_bounded_over_all_elements(tmp_path: Path) -> None:
     path = tmp_path / "many.ply"
     path.write_bytes(header.encode() + bytes(4_500_000) + np.zeros(3, "<f4").tobytes())
     with pytest.raises(
-        DataError, match="brings the rows with list properties before the vertices to 3000000"
+        DataError, match="brings the list lengths to read before the vertices to 3000000"
     ):
         read_point_cloud(path)
 

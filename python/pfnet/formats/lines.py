@@ -1,6 +1,6 @@
 """Reading numeric text tables line by line, in bounded memory.
 
-Text point formats (``.xyz``, ASCII PLY) are read a block of lines at a time, each block
+Text point formats (``.xyz``, ASCII PLY and PCD) are read a block of lines at a time, each block
 parsed by numpy's C parser; no line may exceed :data:`MAX_LINE_BYTES`. Memory then stays
 proportional to the points a file holds, whatever its lines hold: a 60 MB file of twenty
 million short lines once took 2.2 GB as Python strings, and one line of 400 million tokens
@@ -23,13 +23,23 @@ from pfnet.errors import DataError
 MAX_LINE_BYTES = 1 << 16
 # Lines parsed at once: bounds the Python objects alive at any time.
 BLOCK_LINES = 1 << 16
-# Lines of an ASCII PLY or PCD up to the end of its points (parsed at about half a
-# microsecond each): more are refused rather than taking minutes.
+# Lines of a text cloud (``.xyz``, ASCII PLY or PCD) up to the end of its points, blank and
+# comment lines included (each costs about a microsecond): more are refused rather than taking
+# minutes.
 MAX_ASCII_LINES = 20_000_000
 
 
-def numbered_lines(fh: BinaryIO, file: Path, first_number: int = 1) -> Iterator[tuple[int, bytes]]:
-    """Yield ``(line number, line)`` for every line of ``fh``, refusing an overlong one."""
+def numbered_lines(
+    fh: BinaryIO, file: Path, first_number: int = 1, *, max_lines: int | None = None
+) -> Iterator[tuple[int, bytes]]:
+    """Yield ``(line number, line)`` for every line of ``fh``.
+
+    Raises:
+        DataError: A line is longer than :data:`MAX_LINE_BYTES`, or the caller reads more than
+            ``max_lines`` lines (default :data:`MAX_ASCII_LINES`), whatever they hold: blank
+            and comment lines take time too.
+    """
+    max_lines = MAX_ASCII_LINES if max_lines is None else max_lines
     number = first_number
     while True:
         raw = fh.readline(MAX_LINE_BYTES + 1)
@@ -38,6 +48,11 @@ def numbered_lines(fh: BinaryIO, file: Path, first_number: int = 1) -> Iterator[
         if len(raw) > MAX_LINE_BYTES:
             raise DataError(
                 f"{file}: line {number} is longer than {MAX_LINE_BYTES} bytes; not a point table"
+            )
+        if number - first_number >= max_lines:
+            raise DataError(
+                f"{file}: more than {max_lines} lines before the end of the points, blank and "
+                "comment lines included (save large clouds in a binary format)"
             )
         yield number, raw
         number += 1
@@ -64,12 +79,7 @@ def row_blocks(
     seen = taken = 0
     if count == 0:
         return
-    for number, raw in numbered_lines(fh, file, first_number):
-        if number - first_number >= max_lines:
-            raise DataError(
-                f"{file}: more than {max_lines} lines before the end of the points (save "
-                "large clouds in a binary format)"
-            )
+    for number, raw in numbered_lines(fh, file, first_number, max_lines=max_lines):
         if not raw.strip():
             continue
         seen += 1

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import first_three_columns
+from pfnet.formats import check_point_count, first_three_columns
 
 
 def check_npy_header(
@@ -47,7 +47,9 @@ def check_npy_header(
 
 def read_npy(file: Path) -> np.ndarray:
     with open(file, "rb") as fh:
-        check_npy_header(str(file), fh, file.stat().st_size)
+        shape, _ = check_npy_header(str(file), fh, file.stat().st_size)
+    if shape:
+        check_point_count(file, shape[0])
     try:
         array = np.load(file, allow_pickle=False)
     except ValueError as err:  # object arrays, bad headers, truncated data

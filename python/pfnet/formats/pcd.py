@@ -6,9 +6,15 @@ from pathlib import Path
 
 import numpy as np
 
-from pfnet.errors import DataError
-from pfnet.formats import map_rest, read_header
+from pfnet import _core
+from pfnet.errors import DataError, GeometryError
+from pfnet.formats import check_point_count, float32_columns, map_rest, read_header
 from pfnet.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
+
+# Values of one point (the sum of COUNT): descriptors such as SHOT (352 values) fit, and an
+# ASCII line of at most 64 KiB could hold no more than about 32,000. A 10 KB file declaring
+# COUNT 10^8 for one field took 4.7 GB before its first line was parsed.
+MAX_PCD_VALUES = 4096
 
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"}
 _PCD_TYPES.update({("I", s): f"i{s}" for s in (1, 2, 4, 8)})
@@ -48,6 +54,12 @@ def _read_pcd_body(file: Path, fh, header: list[str], body_line: int) -> np.ndar
         raise DataError(f"{file}: PCD header has a malformed SIZE/COUNT/POINTS line") from None
     if min(counts_i) < 1 or n_points < 0:
         raise DataError(f"{file}: PCD header has a COUNT below 1 or a negative point count")
+    if sum(counts_i) > MAX_PCD_VALUES:
+        raise DataError(
+            f"{file}: PCD header declares {sum(counts_i)} values a point (the sum of COUNT); "
+            f"pfnet reads at most {MAX_PCD_VALUES}"
+        )
+    check_point_count(file, n_points)
     dtypes = []
     for name, size, kind in zip(names, sizes, fields["TYPE"], strict=True):
         key = (kind.upper(), size)
@@ -77,10 +89,9 @@ def _read_pcd_body(file: Path, fh, header: list[str], body_line: int) -> np.ndar
                 f"{dtype.itemsize * n_points} bytes, found {len(body)}"
             )
         table = np.frombuffer(body, dtype=dtype, count=n_points)
-        points = np.stack([_pcd_first(table[f"f{c}"]) for c in columns], axis=1)
+        points = float32_columns([_pcd_first(table[f"f{c}"]) for c in columns])
     else:
         points = _read_pcd_compressed(file, map_rest(fh), dtypes, counts_i, n_points, columns)
-    points = np.asarray(points, dtype=np.float64)
     return points[np.isfinite(points).all(axis=1)] if np.isnan(points).any() else points
 
 
@@ -89,19 +100,23 @@ def _pcd_first(column: np.ndarray) -> np.ndarray:
 
 
 def _read_pcd_ascii(file, fh, body_line, counts, n_points, columns) -> np.ndarray:
-    """The points of an ASCII body, a block of lines at a time; later lines unread."""
-    starts = np.cumsum([0, *counts])
+    """The points of an ASCII body, a block of lines at a time; later lines unread.
+
+    Only the values up to the last coordinate are parsed (a line's later values cost nothing).
+    """
+    starts = [int(s) for s in np.cumsum([0, *counts])]
+    used = max(starts[c] for c in columns) + 1
     parts: list[np.ndarray] = []  # not one array of n_points rows: the count may be forged
     for block in row_blocks(
         fh, file, body_line, n_points, max_lines=MAX_ASCII_LINES, what="PCD data"
     ):
-        table = parse_block("".join(line for _, line in block), int(starts[-1]))
+        table = parse_block("".join(line for _, line in block), used)
         if table is None:
             raise DataError(
                 f"{file}: malformed PCD ascii data (non-numeric values, or fewer values than "
-                "the FIELDS declare)"
+                "the FIELDS declare before z)"
             )
-        parts.append(table[:, [starts[c] for c in columns]])
+        parts.append(float32_columns([table[:, starts[c]] for c in columns]))
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
 
@@ -109,6 +124,9 @@ def _read_pcd_ascii(file, fh, body_line, counts, n_points, columns) -> np.ndarra
 # clouds barely compress. A file that claims more is refused before it is unpacked (a 2.7 MB
 # file expanding to 240 MB took 1.9 GB and 20 s).
 MAX_PCD_COMPRESSION = 32
+# Bytes binary_compressed data may unpack to, whatever the file's size: 50,000,000 points of
+# x y z, normals and colour (32 bytes each) fit.
+MAX_PCD_UNPACKED = 1 << 31
 
 
 def _read_pcd_compressed(file, body, dtypes, counts, n_points, columns) -> np.ndarray:
@@ -126,54 +144,22 @@ def _read_pcd_compressed(file, body, dtypes, counts, n_points, columns) -> np.nd
             f"{file}: PCD binary_compressed data declares {raw} bytes, the header's "
             f"{n_points} points need {int(offsets[-1])}"
         )
+    if raw > MAX_PCD_UNPACKED:
+        raise DataError(
+            f"{file}: PCD binary_compressed data declares {raw} bytes unpacked; pfnet unpacks "
+            f"at most {MAX_PCD_UNPACKED}"
+        )
     if raw > MAX_PCD_COMPRESSION * compressed + 65536:
         raise DataError(
             f"{file}: PCD binary_compressed data claims to expand {raw / max(compressed, 1):.0f} "
             f"times; point clouds do not compress beyond {MAX_PCD_COMPRESSION}"
         )
-    data = _lzf_decompress(file, bytes(body[8 : 8 + compressed]), raw)
+    try:  # in the Rust core: linear in the size, never beyond it
+        data = _core.lzf_decompress(np.frombuffer(body, np.uint8, compressed, 8), raw)
+    except GeometryError as err:
+        raise DataError(f"{file}: corrupt PCD binary_compressed data ({err})") from None
     out = []
     for c in columns:
         block = np.frombuffer(data, dtypes[c], n_points * counts[c], int(offsets[c]))
         out.append(block.reshape(n_points, counts[c])[:, 0])
-    return np.stack(out, axis=1)
-
-
-def _lzf_decompress(file: Path, src: bytes, size: int) -> bytes:
-    """Decompress LZF (liblzf's format, used by PCL's ``binary_compressed``)."""
-    out = bytearray()
-    i, n = 0, len(src)
-    try:
-        while i < n:
-            ctrl = src[i]
-            i += 1
-            if ctrl < 32:  # literal run of ctrl + 1 bytes
-                out += src[i : i + ctrl + 1]
-                i += ctrl + 1
-            else:  # back reference
-                length = ctrl >> 5
-                if length == 7:
-                    length += src[i]
-                    i += 1
-                ref = len(out) - ((ctrl & 0x1F) << 8) - src[i] - 1
-                i += 1
-                if ref < 0:
-                    raise IndexError
-                length += 2
-                if ref + length <= len(out):  # the common case: copy a slice at once
-                    out += out[ref : ref + length]
-                else:  # overlapping run: byte by byte
-                    for k in range(length):
-                        out.append(out[ref + k])
-            if len(out) > size:  # never expand beyond the declared size
-                raise DataError(
-                    f"{file}: corrupt PCD binary_compressed data (expands beyond the "
-                    f"declared {size} bytes)"
-                )
-    except IndexError:
-        raise DataError(f"{file}: corrupt PCD binary_compressed data") from None
-    if len(out) != size:
-        raise DataError(
-            f"{file}: corrupt PCD binary_compressed data ({len(out)} bytes, expected {size})"
-        )
-    return bytes(out)
+    return float32_columns(out)

@@ -3,7 +3,8 @@
 One point per line, ``x y z`` first (more columns such as normals or colours are ignored),
 separated by spaces, tabs or commas; ``#`` starts a comment, as does ``//`` at a line's
 start. A first line of column names ("x,y,z") or a Leica ``.pts`` point count is skipped.
-The file is read a block of lines at a time (:mod:`pfnet.formats.lines`).
+The file is read a block of lines at a time (:mod:`pfnet.formats.lines`), at most
+:data:`~pfnet.formats.lines.MAX_ASCII_LINES` lines of them, blank and comment lines included.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
+from pfnet.formats import float32_columns
 from pfnet.formats.lines import BLOCK_LINES, numbered_lines, parse_block
 
 _SPLIT = re.compile(r"[,\s]+")
@@ -77,7 +79,7 @@ def _parse(file: Path, block: list[tuple[int, str]]) -> np.ndarray:
     text = "".join(line for _, line in block).replace(",", " ")
     table = parse_block(text, 3, _COMMENTS)
     if table is not None:
-        return table
+        return float32_columns([table[:, 0], table[:, 1], table[:, 2]])
     points = []  # uneven rows (x y z plus varying attributes) or a bad line: one at a time
     for number, line in block:
         row = _tokens(line)
