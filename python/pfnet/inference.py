@@ -138,8 +138,8 @@ def predict_split(
 
     Raises:
         ConfigError: Bad device, batch size or ratio.
-        DataError: Unreadable checkpoint or data set, or a model output refused by
-            :func:`check_detail`.
+        DataError: Unreadable checkpoint or data set, clouds of another size than the model's,
+            or a model output refused by :func:`check_detail`.
     """
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.io import atomic_path, refuse_overlap, save_npy
@@ -162,6 +162,16 @@ def predict_split(
     if len(clouds) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")
     points = np.asarray(clouds.points, dtype=np.float32)
+    # The protocol's scores compare a region of the model's size with the true one: clouds
+    # of another size would be scored without meaning (or, below 4 points, not run at all).
+    # `complete` resamples a scan to the model's input instead; a benchmark must not.
+    if points.shape[1] != config.n_points:
+        raise DataError(
+            f"split {split!r} of {data_dir} has clouds of {points.shape[1]} points, but model "
+            f"{checkpoint} was trained on clouds of {config.n_points}; predict on a data set "
+            f"prepared with {config.n_points} points per cloud"
+        )
+    config.replace(missing_ratio=ratio)  # ConfigError unless 1 to N - 4 points are removed
     partial, removed = test_protocol_crop(points, ratio)
     detail = predict_missing(
         model, np.asarray(partial, dtype=np.float32), batch_size, device, source=checkpoint

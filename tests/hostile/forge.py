@@ -4,6 +4,7 @@ folder on sys.path)."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,23 @@ def write_predictions(
     if record:
         info = {"split": split, "protocol": {"name": "test", "missing_ratio": ratio}}
         (folder / "predictions.json").write_text(json.dumps(info))
+    return folder
+
+
+def resized_dataset(folder: Path, data: Path, n_points: int) -> Path:
+    """A copy of ``data`` whose test clouds hold ``n_points`` points each (the first ones,
+    repeated cyclically when there are fewer), its manifest saying so."""
+    shutil.copytree(data, folder)
+    clouds = load_split(folder, "test")
+    index = np.arange(n_points) % clouds.points.shape[1]
+    np.savez(
+        folder / "test.npz",
+        points=np.ascontiguousarray(clouds.points[:, index]),
+        category=clouds.category,
+        name=clouds.name,
+    )
+    manifest = json.loads((folder / "manifest.json").read_text())
+    (folder / "manifest.json").write_text(json.dumps({**manifest, "points": n_points}))
     return folder
 
 

@@ -1,7 +1,7 @@
 """The eighth hostile audit's model-side findings: forged ONNX graphs (a declared or actual
 output that is not ``(batch, M, 3)`` finite points, a run that fails), weights that overflow
-in the forward pass. Each ends in one line naming the model and the problem, and nothing is
-written."""
+in the forward pass, and data sets whose clouds are not the model's size. Each ends in one
+line naming the model (or the data set) and the problem, and nothing is written."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from forge import onnx_model
+from forge import onnx_model, resized_dataset
 
 from pfnet.cli import main
 from pfnet.io import write_ply
@@ -173,4 +173,26 @@ def test_weights_that_overflow_are_refused_before_writing(
     assert main([*args, "--device", "cpu"]) == 1
     err = _one_line_error(capsys, "big.pt", "predicted NaN or infinite coordinates")
     assert "write_ply" not in err  # the model is blamed, not the writer
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("n_points", [3, 6, 600])
+def test_predict_refuses_clouds_of_another_size_than_the_models(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, n_points: int, capsys
+) -> None:
+    data = resized_dataset(tmp_path / "data", tiny_dataset, n_points)
+    out = tmp_path / "pred"
+    args = ["predict", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(out)]
+    assert main([*args, "--device", "cpu"]) == 1
+    _one_line_error(capsys, f"has clouds of {n_points} points", "m.pt", "clouds of 512")
+    assert not out.exists()
+
+
+def test_predict_refuses_a_ratio_that_leaves_the_encoder_too_few_points(
+    tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
+) -> None:
+    out = tmp_path / "pred"
+    args = ["predict", "--checkpoint", str(checkpoint), "--data", str(tiny_dataset)]
+    assert main([*args, "--out", str(out), "--missing-ratio", "0.995", "--device", "cpu"]) == 1
+    _one_line_error(capsys, "removes 509 points", "4 must remain")
     assert not out.exists()
