@@ -58,7 +58,8 @@ def unsafe_component(text: str) -> str | None:
 
     Categories and names become paths (``PRED/<category>/<name>.npy``), so a data set
     holding ``..``, ``/`` or an absolute path could make a command write outside its
-    ``--out``; they are refused when a split is loaded.
+    ``--out``; they are refused when a split is loaded. So are names beginning with ``.``,
+    which ``evaluate`` would never find (it skips hidden and temporary files).
     """
     if not text:
         return "is empty"
@@ -71,6 +72,11 @@ def unsafe_component(text: str) -> str | None:
     bad = sorted({c for c in text if c in "/\\:" or ord(c) < 32 or ord(c) == 127})
     if bad:
         return f"contains {', '.join(repr(c) for c in bad)}: not allowed in a file name"
+    if text.startswith("."):  # pfnet prepare never makes one (safe_name strips the dot)
+        return (
+            "begins with '.': a hidden file, which evaluate skips like the temporary files "
+            "pfnet writes"
+        )
     return None
 
 
