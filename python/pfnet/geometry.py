@@ -68,9 +68,12 @@ def _as_cloud(
         )
     batched = array.ndim == 3
     if array.dtype.type not in dtypes:
-        array = array.astype(dtypes[0] if array.dtype.kind == "f" else np.float64)
-        if array.dtype.type not in dtypes:
-            array = array.astype(dtypes[0])
+        # float64 beyond float32's range becomes inf, which the core refuses by name: numpy's
+        # own warning about it would only come first
+        with np.errstate(over="ignore"):
+            array = array.astype(dtypes[0] if array.dtype.kind == "f" else np.float64)
+            if array.dtype.type not in dtypes:
+                array = array.astype(dtypes[0])
     array = np.ascontiguousarray(array)
     return (array if batched else array[None]), batched
 
@@ -180,7 +183,10 @@ def _core_crop(kind: str, dtype: np.dtype):
 
 def _viewpoints(name: str, value: ArrayLike, batch: int, batched: bool, ndim: int) -> np.ndarray:
     """Validate viewpoint(s): a single one is broadcast over the batch."""
-    array = np.asarray(value, dtype=np.float64)
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except OverflowError:  # a Python int such as 10**400
+        raise GeometryError(f"{name} must be finite, got a number beyond float64") from None
     single = array.ndim == ndim - 1
     expected = "(3,) or (B, 3)" if ndim == 2 else "(K, 3) or (B, K, 3)"
     if array.ndim not in (ndim - 1, ndim) or array.shape[-1] != 3 or (not batched and not single):
@@ -237,7 +243,12 @@ def crop_by_viewpoint(
     if radius is not None:
         if isinstance(radius, (str, bytes, bool)) or not isinstance(radius, numbers.Real):
             raise TypeError(f"radius must be a real number, got {type(radius).__name__}")
-        radius = float(radius)
+        try:
+            radius = float(radius)
+        except OverflowError:  # a Python int or Fraction such as 10**400
+            raise GeometryError(
+                "radius must be a finite number >= 0, got one beyond float64"
+            ) from None
         if not (np.isfinite(radius) and radius >= 0):
             raise GeometryError(f"radius must be a finite number >= 0, got {radius}")
         crop = _core_crop("radius", cloud.dtype)
