@@ -38,7 +38,10 @@ VIEWPOINTS: NDArray[np.float32] = _core.VIEWPOINTS.astype(np.float32)
 VIEWPOINTS.flags.writeable = False
 
 MAX_REGIONS: int = _core.MAX_REGIONS
-"""The most regions :func:`random_crop` may remove at once."""
+"""The most regions :func:`random_crop` and :func:`crop_multi_region` may remove at once (256).
+
+The paper crops one region and the command line at most five; each region costs a pass over
+the points (256 regions on 65,536 points take about 0.3 s; 65,536 regions took 36 s)."""
 MAX_COORDINATE: float = _core.MAX_COORDINATE
 """The largest coordinate magnitude the kernels accept (squared distances stay finite)."""
 MAX_POINTS: int = _core.MAX_POINTS
@@ -269,7 +272,8 @@ def crop_multi_region(points: ArrayLike, viewpoints: ArrayLike, n_missing: int):
 
     Args:
         points: ``(N, 3)`` or ``(B, N, 3)``.
-        viewpoints: ``(K, 3)``, or ``(B, K, 3)`` for a batch.
+        viewpoints: ``(K, 3)``, or ``(B, K, 3)`` for a batch; ``1 <= K <=``
+            :data:`MAX_REGIONS`.
         n_missing: Total points to remove, ``0 <= n_missing < N``.
 
     Returns:
@@ -304,7 +308,8 @@ def random_crop(
         points: ``(N, 3)`` or ``(B, N, 3)``.
         n_missing: Total points to remove, ``0 <= n_missing < N``.
         seed: Non-negative integer seed.
-        n_regions: Number of removed regions (at most 5 with ``"viewpoints"``).
+        n_regions: Number of removed regions (at most 5 with ``"viewpoints"``, else at most
+            :data:`MAX_REGIONS`).
         directions: ``"viewpoints"`` or ``"sphere"``.
 
     Returns:
