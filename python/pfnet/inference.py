@@ -52,7 +52,6 @@ def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.nda
             f"model {source} predicted {got}, not float {want} (batch, missing points, xyz); "
             "it is not a working pfnet model"
         )
-    detail = detail.astype(np.float32, copy=False)
     if not np.isfinite(detail).all():
         raise DataError(
             f"model {source} predicted NaN or infinite coordinates; it is not a working model "
@@ -65,7 +64,7 @@ def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.nda
             f"model {source} predicted a coordinate of {furthest:.3g} in the unit ball's frame "
             f"(at most {MAX_PREDICTED_RADIUS:g} expected); it is not a working model"
         )
-    return detail
+    return detail.astype(np.float32, copy=False)  # after the bound: float64 1e300 would warn
 
 
 def predict_missing(
