@@ -283,7 +283,7 @@ def test_missing_file_directory_and_unknown_suffix(tmp_path):
     with pytest.raises(DataError, match=r"nope\.ply: no such file"):
         read_point_cloud(tmp_path / "nope.ply")
     (tmp_path / "dir.npy").mkdir()
-    with pytest.raises(DataError, match=r"dir\.npy: not a regular file"):
+    with pytest.raises(DataError, match=r"dir\.npy: a folder, not a point cloud file"):
         read_point_cloud(tmp_path / "dir.npy")
     (tmp_path / "a.obj").write_text("v 1 2 3\n")
     with pytest.raises(DataError, match=r"a\.obj: unsupported point cloud suffix '\.obj'"):

@@ -67,7 +67,12 @@ def network_input(points: np.ndarray, n_input: int) -> np.ndarray:
 
 
 def complete_clouds(
-    model: Any, clouds: list[np.ndarray], *, batch_size: int = 32, device: str = "cpu"
+    model: Any,
+    clouds: list[np.ndarray],
+    *,
+    batch_size: int = 32,
+    device: str = "cpu",
+    source: Any = "in use",
 ) -> list[np.ndarray]:
     """Predict the missing region of each cloud, in the cloud's own coordinates.
 
@@ -77,9 +82,14 @@ def complete_clouds(
         clouds: float32 ``(N_i, 3)`` partial clouds in any coordinates, any ``N_i``.
         batch_size: Clouds per forward pass.
         device: Torch device the model lives on.
+        source: The checkpoint the model came from, named in errors.
 
     Returns:
         One float32 ``(M, 3)`` array per cloud.
+
+    Raises:
+        DataError: The model's output is not finite points of the expected shape
+            (:func:`pfnet.inference.check_detail`).
     """
     from pfnet.inference import predict_missing
 
@@ -88,7 +98,7 @@ def complete_clouds(
     batch = np.stack(
         [network_input(t.apply(c), n_input) for c, t in zip(clouds, transforms, strict=True)]
     )
-    detail = predict_missing(model, batch, batch_size, device)
+    detail = predict_missing(model, batch, batch_size, device, source=source)
     return [t.invert(d) for t, d in zip(transforms, detail, strict=True)]
 
 
@@ -147,31 +157,36 @@ def complete_files(
     batch_size: int = 32,
     device: str = "cpu",
     on_skip: Callable[[DataError], None] | None = None,
+    source: Any = "in use",
 ) -> tuple[int, list[str]]:
     """Complete ``inputs`` batch by batch into ``out_dir`` (created if needed).
 
     A file that cannot be read, or whose points all coincide, is skipped (``on_skip`` is told
-    at once) and the rest are completed. An interrupted first batch leaves no empty folder.
+    at once) and the rest are completed. A first batch interrupted or refused leaves no empty
+    folder.
+    ``source`` (the checkpoint) is named if the model's output is refused.
 
     Returns:
         The number of files completed and the messages of the files skipped.
 
     Raises:
         ConfigError: If ``batch_size < 1``.
+        DataError: The model's output is refused (:func:`pfnet.inference.check_detail`);
+            the batch it was for is not written.
     """
     if batch_size < 1:
         raise ConfigError(f"batch size must be at least 1, got {batch_size}")
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
-        return _complete_batches(model, inputs, out_dir, batch_size, device, on_skip)
-    except KeyboardInterrupt:
+        return _complete_batches(model, inputs, out_dir, batch_size, device, on_skip, source)
+    except (KeyboardInterrupt, DataError):  # Ctrl-C, or a model whose output is refused
         if created and not any(out_dir.iterdir()):
             out_dir.rmdir()
         raise
 
 
-def _complete_batches(model, inputs, out_dir, batch_size, device, on_skip):
+def _complete_batches(model, inputs, out_dir, batch_size, device, on_skip, source):
     """:func:`complete_files` without the folder's creation and clean-up."""
     from tqdm import tqdm
 
@@ -195,7 +210,9 @@ def _complete_batches(model, inputs, out_dir, batch_size, device, on_skip):
             paths.append(path)
             clouds.append(cloud)
         if clouds:
-            predicted = complete_clouds(model, clouds, batch_size=batch_size, device=device)
+            predicted = complete_clouds(
+                model, clouds, batch_size=batch_size, device=device, source=source
+            )
             for path, cloud, missing in zip(paths, clouds, predicted, strict=True):
                 write_completion(out_dir, path, cloud, missing)
                 done += 1

@@ -26,6 +26,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -237,25 +238,71 @@ def recorded_protocol(
         DataError: If the record exists but cannot be read.
     """
     record = Path(pred_dir) / "predictions.json"
-    if not record.is_file():
+    if not record.exists() and not record.is_symlink():
         return None
+    if not record.is_file():  # a folder here was once taken for no record at all
+        raise DataError(f"cannot read {record}: not a file")
     if record.stat().st_size > 1 << 20:  # predict writes a few hundred bytes
         raise DataError(f"cannot read {record}: larger than 1 MB, not pfnet predict's record")
     try:
         info = json.loads(record.read_text(encoding="utf-8"))
-        stopped = info.get("complete") is False
-        ratio = float(info["protocol"]["missing_ratio"])
-        points = info["protocol"].get("n_points")
-        recorded = str(info["split"]), ratio, None if points is None else int(points)
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
+    except (OSError, ValueError, RecursionError) as err:
         # ValueError: bad UTF-8 or JSON; RecursionError: forged nesting
         raise DataError(f"cannot read {record} ({type(err).__name__}: {str(err)[:120]})") from None
-    if stopped:
+    problem = _record_problem(info)
+    if problem is not None:
+        raise DataError(f"{record}: {problem}")
+    if info.get("complete") is False:
         raise DataError(
             f"{record} says its prediction run stopped before writing every file (the "
             "folder may mix old and new predictions); run pfnet predict again"
         )
-    return recorded
+    protocol = info["protocol"]
+    return info["split"], float(protocol["missing_ratio"]), protocol.get("n_points")
+
+
+def _record_problem(info: Any) -> str | None:
+    """What is wrong with a ``predictions.json`` document, or None.
+
+    Types are exact, as :func:`pfnet.inference.predict_split` writes them: a string
+    ``"false"`` is not a boolean, ``"0.25"`` not a ratio, ``true`` not a count (``bool`` is an
+    ``int`` to Python). Keys that older pfnet versions did not write (``complete``,
+    ``n_points``, ``model``) may be absent.
+    """
+    from pfnet.models.config import is_int, is_number
+
+    def shown(value: Any) -> str:
+        return json.dumps(value)[:40] if not isinstance(value, float) else repr(value)
+
+    if not isinstance(info, dict):
+        return f"expected a JSON object, got {type(info).__name__}"
+    if not isinstance(info.get("complete", False), bool):
+        return f'"complete" must be true or false, got {shown(info["complete"])}'
+    if not isinstance(info.get("split"), str):
+        return f'"split" must be a split\'s name, got {shown(info.get("split"))}'
+    protocol = info.get("protocol")
+    if not isinstance(protocol, dict):
+        return f'"protocol" must be an object, got {shown(protocol)}'
+    ratio = protocol.get("missing_ratio")
+    if not (is_number(ratio) and 0 < ratio < 1):
+        return f'"protocol.missing_ratio" must be a number in (0, 1), got {shown(ratio)}'
+    model = info.get("model", {})
+    if not isinstance(model, dict):
+        return f'"model" must be an object, got {shown(model)}'
+    counts = {
+        "protocol.n_points": protocol.get("n_points"),
+        "model.n_points": model.get("n_points"),
+    }
+    for key, count in counts.items():
+        if count is not None and not (is_int(count) and count >= 1):
+            return f'"{key}" must be a positive integer, got {shown(count)}'
+    points, trained = counts.values()
+    if None not in (points, trained) and points != trained:
+        return (
+            f"its model was trained on clouds of {trained} points but predicted clouds of "
+            f"{points}: the scores would compare regions of different sizes"
+        )
+    return None
 
 
 def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:

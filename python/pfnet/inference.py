@@ -18,9 +18,59 @@ import numpy as np
 
 from pfnet.errors import ConfigError, DataError
 
+# A prediction is in the frame of its partial cloud normalised to the unit ball, where the true
+# missing region lies within radius 1 and a working model's points stay within a few radii.
+# A point a thousand radii out is no completion but a broken or forged model (weights that
+# overflow, a graph that outputs 1e30), and mapped back it could leave float32.
+MAX_PREDICTED_RADIUS = 1e3
 
-def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: str) -> np.ndarray:
-    """Run ``model`` over ``partial`` clouds in batches.
+
+def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.ndarray:
+    """A model's output for ``batch`` clouds, checked: float32 ``(batch, n_missing, 3)``,
+    finite, and within :data:`MAX_PREDICTED_RADIUS` of the unit ball's centre.
+
+    Args:
+        detail: What the forward pass returned (a numpy array, or anything a forged model gave).
+        batch: Clouds in the forward pass.
+        n_missing: M, the points the model is configured to predict.
+        source: The checkpoint or model file, named in the message.
+
+    Returns:
+        ``detail`` as a float32 array.
+
+    Raises:
+        DataError: Any other output: the model or its weights are broken, nothing is written.
+    """
+    want = (batch, n_missing, 3)
+    if not isinstance(detail, np.ndarray) or detail.dtype.kind != "f" or detail.shape != want:
+        got = (
+            f"{detail.dtype} {detail.shape}"
+            if isinstance(detail, np.ndarray)
+            else type(detail).__name__
+        )
+        raise DataError(
+            f"model {source} predicted {got}, not float {want} (batch, missing points, xyz); "
+            "it is not a working pfnet model"
+        )
+    if not np.isfinite(detail).all():
+        raise DataError(
+            f"model {source} predicted NaN or infinite coordinates; it is not a working model "
+            "(do its weights overflow?)"
+        )
+    # max |coordinate| rather than the norm: the bound is loose and this cannot overflow
+    furthest = float(np.abs(detail).max(initial=0.0))
+    if furthest > MAX_PREDICTED_RADIUS:
+        raise DataError(
+            f"model {source} predicted a coordinate of {furthest:.3g} in the unit ball's frame "
+            f"(at most {MAX_PREDICTED_RADIUS:g} expected); it is not a working model"
+        )
+    return detail.astype(np.float32, copy=False)  # after the bound: float64 1e300 would warn
+
+
+def predict_missing(
+    model: Any, partial: np.ndarray, batch_size: int, device: str, *, source: Any = "in use"
+) -> np.ndarray:
+    """Run ``model`` over ``partial`` clouds in batches, checking each batch's output.
 
     Args:
         model: A completion model in eval mode (``forward(partial) -> Completion``), or an
@@ -28,9 +78,15 @@ def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: st
         partial: float32 ``(S, n, 3)`` partial clouds.
         batch_size: Clouds per forward pass.
         device: Torch device the model lives on.
+        source: The checkpoint the PyTorch model came from, named in errors (an ONNX model
+            names its own file).
 
     Returns:
         float32 ``(S, M, 3)`` predicted missing regions.
+
+    Raises:
+        DataError: The model's output is not ``(batch, M, 3)`` finite points
+            (:func:`check_detail`), or an ONNX model fails to run.
     """
     from pfnet.runtimes import OnnxGenerator
 
@@ -47,7 +103,8 @@ def predict_missing(model: Any, partial: np.ndarray, batch_size: int, device: st
         for start in tqdm(starts, desc="predict", unit="batch", disable=None, leave=False):
             batch = torch.from_numpy(np.ascontiguousarray(partial[start : start + batch_size]))
             completion = model(batch.to(device=device, dtype=torch.float32))
-            outputs.append(completion.detail.float().cpu().numpy())
+            detail = completion.detail.float().cpu().numpy()
+            outputs.append(check_detail(detail, len(batch), model.n_missing, source))
     return np.concatenate(outputs).astype(np.float32, copy=False)
 
 
@@ -80,7 +137,8 @@ def predict_split(
 
     Raises:
         ConfigError: Bad device, batch size or ratio.
-        DataError: Unreadable checkpoint or data set.
+        DataError: Unreadable checkpoint or data set, clouds of another size than the model's,
+            or a model output refused by :func:`check_detail`.
     """
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.io import atomic_path, refuse_overlap, save_npy
@@ -103,8 +161,20 @@ def predict_split(
     if len(clouds) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")
     points = np.asarray(clouds.points, dtype=np.float32)
+    # The protocol's scores compare a region of the model's size with the true one: clouds
+    # of another size would be scored without meaning (or, below 4 points, not run at all).
+    # `complete` resamples a scan to the model's input instead; a benchmark must not.
+    if points.shape[1] != config.n_points:
+        raise DataError(
+            f"split {split!r} of {data_dir} has clouds of {points.shape[1]} points, but model "
+            f"{checkpoint} was trained on clouds of {config.n_points}; predict on a data set "
+            f"prepared with {config.n_points} points per cloud"
+        )
+    config.replace(missing_ratio=ratio)  # ConfigError unless 1 to N - 4 points are removed
     partial, removed = test_protocol_crop(points, ratio)
-    detail = predict_missing(model, np.asarray(partial, dtype=np.float32), batch_size, device)
+    detail = predict_missing(
+        model, np.asarray(partial, dtype=np.float32), batch_size, device, source=checkpoint
+    )
 
     out = Path(out_dir)
     categories = sorted(set(map(str, clouds.category)))

@@ -163,7 +163,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     The temporary name lives in the same folder (so :func:`os.replace` is atomic) and keeps
     the suffix of ``path`` (so writers that pick a format from the suffix, such as
     ``np.save`` or matplotlib's ``savefig``, behave as they would on ``path``). If the block
-    raises, the temporary file is removed and ``path`` is left untouched.
+    raises, the temporary file is removed and ``path`` is left untouched; an ``OSError`` that
+    names no file (a full disk) or the temporary one is made to name ``path``.
 
     Args:
         path: The final destination; its parent folder must exist.
@@ -180,9 +181,12 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, final)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        if isinstance(err, OSError) and err.filename in (None, str(tmp)):
+            # a full disk names no file (or the temporary one, which is gone): name the output
+            err.filename = str(final)
         raise
 
 
@@ -253,6 +257,8 @@ def read_point_cloud(path: str | os.PathLike[str]) -> np.ndarray:
     """
     file = Path(path)
     suffix = file.suffix.lower()
+    if file.is_dir():  # before the suffix, which a folder seldom has
+        raise DataError(f"{file}: a folder, not a point cloud file; give the files in it")
     if suffix not in POINT_CLOUD_SUFFIXES:
         raise DataError(
             f"{file}: unsupported point cloud suffix {file.suffix!r} "

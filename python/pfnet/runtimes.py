@@ -68,7 +68,8 @@ class OnnxGenerator:
         ort = import_onnxruntime("the ONNX runtime")
         self.path = Path(path)
         options = ort.SessionOptions()
-        options.log_severity_level = 3  # ORT's own warnings are not the user's business
+        # ORT's own log is not the user's business: its errors come back as exceptions too
+        options.log_severity_level = 4
         try:
             self.session = ort.InferenceSession(
                 str(self.path), options, providers=_providers(ort, device)
@@ -97,20 +98,63 @@ class OnnxGenerator:
         providers = self.session.get_providers()
         self.device = device if "CUDAExecutionProvider" in providers else "cpu"
         self.device = "cuda" if self.device == "auto" else self.device
-        if self.inputs not in (["partial"], ["partial", "scale_indices"]):
-            raise DataError(f"ONNX model {self.path} has inputs {self.inputs}, not a pfnet export")
+        self._check_signature()
+
+    def _check_signature(self) -> None:
+        """Refuse a graph whose declared inputs or output are not a pfnet export's: ``partial``
+        float ``(batch, points, 3)`` [+ ``scale_indices`` int64 ``(batch, half)``] ->
+        ``detail`` float ``(batch, n_missing, 3)``. (The output is checked again after each
+        run: declared shapes may be symbolic.)"""
+        # a name stands for a free axis, where a fixed size (a batch of 1) is refused too
+        expected = {
+            "partial": ("tensor(float)", ("batch", "points", 3)),
+            "scale_indices": ("tensor(int64)", ("batch", "half")),
+            "detail": ("tensor(float)", ("batch", self.n_missing, 3)),
+        }
+        outputs = [o.name for o in self.session.get_outputs()]
+        if self.inputs not in (["partial"], ["partial", "scale_indices"]) or outputs != ["detail"]:
+            raise DataError(
+                f"ONNX model {self.path} has inputs {self.inputs[:4]} and outputs "
+                f"{outputs[:4]}, not a pfnet export's (partial[, scale_indices]) -> detail"
+            )
+        for arg in [*self.session.get_inputs(), *self.session.get_outputs()]:
+            kind, dims = expected[arg.name]
+            shape = arg.shape  # ints, and names or None for free axes; None if undeclared
+            fits = shape is None or (
+                len(shape) == len(dims)
+                and all(
+                    not isinstance(got, int) if isinstance(want, str) else got == want
+                    for got, want in zip(shape, dims, strict=True)
+                )
+            )
+            if arg.type != kind or not fits:
+                raise DataError(
+                    f"ONNX model {self.path}: {arg.name} is declared {arg.type} "
+                    f"{list(shape or [])[:6]}, but pfnet expects {kind} "
+                    f"({', '.join(map(str, dims))})"
+                )
 
     def predict(self, partial: np.ndarray) -> np.ndarray:
-        """float32 ``(B, n, 3)`` normalised partial clouds -> float32 ``(B, M, 3)``."""
+        """float32 ``(B, n, 3)`` normalised partial clouds -> float32 ``(B, M, 3)``.
+
+        Raises:
+            DataError: The model fails to run or its output is not ``(B, M, 3)`` finite points
+                (:func:`pfnet.inference.check_detail`).
+        """
         from pfnet.geometry import farthest_point_sample
+        from pfnet.inference import check_detail
 
         partial = np.ascontiguousarray(partial, dtype=np.float32)
         feeds = {"partial": partial}
         if "scale_indices" in self.inputs:  # the IFPS prefix, as the PyTorch encoder takes
             index = farthest_point_sample(partial, partial.shape[1] // 2)
             feeds["scale_indices"] = np.asarray(index, dtype=np.int64)
-        (detail,) = self.session.run(["detail"], feeds)
-        return detail
+        try:
+            (detail,) = self.session.run(["detail"], feeds)
+        except Exception as err:  # ORT's own types: a failed allocation, a bad node
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+            raise DataError(f"ONNX model {self.path} failed to run: {first}") from None
+        return check_detail(detail, len(partial), self.n_missing, self.path)
 
     def predict_missing(self, partial: np.ndarray, batch_size: int) -> np.ndarray:
         """:func:`pfnet.inference.predict_missing` on ONNX Runtime: ``(S, n, 3)`` in batches."""
@@ -218,6 +262,13 @@ def load_generator(
     from pfnet.models.config import ModelConfig
 
     config = ModelConfig.from_dict(model.config, source=f"ONNX model {model.path}", extra="ignore")
+    recorded = (model.n_points, model.n_missing)
+    if config.n_points is None or (config.n_points, config.n_missing) != recorded:
+        raise DataError(
+            f"ONNX model {model.path}: its metadata says {recorded[0]} points with "
+            f"{recorded[1]} missing, its training configuration {config.n_points} points "
+            f"with ratio {config.missing_ratio}"
+        )
     return LoadedGenerator(model, config, model.device, "onnx", source)
 
 

@@ -93,6 +93,8 @@ def test_complete_never_overwrites_an_input(tmp_path: Path, capsys) -> None:
         ("/tmp", "x", "not allowed in a file name"),
         ("chair", "", "is empty"),
         ("chair", "a\x00b", "not allowed in a file name"),
+        (".x", "a", "begins with '.'"),  # predict wrote these; evaluate skipped them
+        ("chair", ".a", "begins with '.'"),
     ],
 )
 def test_names_that_would_leave_the_output_folder_are_refused_on_load(
@@ -127,6 +129,22 @@ def test_a_data_set_with_hostile_or_duplicate_names_cannot_be_loaded(
         DataError, match=r"categories \['predictions.json'\] are not in the manifest"
     ):
         load_split(data, "test")
+
+
+def test_evaluate_refuses_hidden_names_it_would_never_find(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    clouds = load_split(data, "test")
+    names = clouds.name.copy()
+    names[0] = ".a"  # once written by predict as PRED/<category>/.a.npy, then reported missing
+    np.savez(data / "test.npz", points=clouds.points, category=clouds.category, name=names)
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    assert main(["evaluate", str(pred), "--data", str(data)]) == 1
+    err = capsys.readouterr().err
+    assert "test.npz" in err and "'.a' begins with '.'" in err and "Traceback" not in err
 
 
 def test_predict_and_train_refuse_an_output_over_their_data(

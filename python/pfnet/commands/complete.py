@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         device=device,
         on_skip=lambda err: print(f"skipped: {err}", file=sys.stderr),
+        source=loaded.source,
     )
     print(
         f"completed {done} of {len(inputs)} file(s) into {args.out} "

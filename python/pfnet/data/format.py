@@ -58,7 +58,8 @@ def unsafe_component(text: str) -> str | None:
 
     Categories and names become paths (``PRED/<category>/<name>.npy``), so a data set
     holding ``..``, ``/`` or an absolute path could make a command write outside its
-    ``--out``; they are refused when a split is loaded.
+    ``--out``; they are refused when a split is loaded. So are names beginning with ``.``,
+    which ``evaluate`` would never find (it skips hidden and temporary files).
     """
     if not text:
         return "is empty"
@@ -71,6 +72,11 @@ def unsafe_component(text: str) -> str | None:
     bad = sorted({c for c in text if c in "/\\:" or ord(c) < 32 or ord(c) == 127})
     if bad:
         return f"contains {', '.join(repr(c) for c in bad)}: not allowed in a file name"
+    if text.startswith("."):  # pfnet prepare never makes one (safe_name strips the dot)
+        return (
+            "begins with '.': a hidden file, which evaluate skips like the temporary files "
+            "pfnet writes"
+        )
     return None
 
 
@@ -192,12 +198,25 @@ def read_manifest(root: str | os.PathLike[str]) -> dict:
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise DataError(f"{path}: not a {FORMAT_NAME} manifest")
     version = manifest.get("version")
-    if not isinstance(version, int) or version > FORMAT_VERSION:
+    if not _is_count(version) or version > FORMAT_VERSION:  # `true` is an int to Python
         raise DataError(
-            f"{path}: format version {version!r} is not supported (this pfnet reads up to "
-            f"{FORMAT_VERSION})"
+            f"{path}: format version {json.dumps(version)[:40]} is not supported (this pfnet "
+            f"reads versions 1 to {FORMAT_VERSION})"
+        )
+    points = manifest.get("points")
+    if points is not None and not _is_count(points):
+        # "512" once switched the split files' point check off, -1 made evaluate compare
+        # predictions with clouds of -1 points
+        raise DataError(
+            f"{path}: the manifest's points per cloud must be a positive integer, got "
+            f"{json.dumps(points)[:40]}"
         )
     return manifest
+
+
+def _is_count(value: object) -> bool:
+    """A positive ``int`` that is not a ``bool``."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
 
 
 def split_record(clouds: CloudSet) -> dict[str, object]:
@@ -265,11 +284,8 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
         raise DataError(f"{path}: missing split file")
     record = split_record_of(manifest, split, Path(root) / MANIFEST_NAME)
     try:
-        declared = manifest.get("points")
         _check_members(
-            path,
-            record["total"] if record is not None else None,
-            declared if isinstance(declared, int) else None,
+            path, record["total"] if record is not None else None, manifest.get("points")
         )
         with np.load(path, allow_pickle=False) as data:
             missing = {"points", "category", "name"} - set(data.files)
@@ -470,8 +486,10 @@ def write_dataset(
         if path.exists():
             os.replace(path, old)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(err, OSError) and err.filename is None:  # a full disk names no file
+            err.filename = str(path)
         if old.exists() and not path.exists():
             with contextlib.suppress(OSError):
                 os.replace(old, path)
