@@ -20,11 +20,13 @@
 //! order: the point with the smallest one; among equal float32 distances the nearest in float64;
 //! then the lowest item. Pruning is exact for that order (see [`Nearest::may_improve`]).
 
+use std::ops::Range;
+
 /// Most points in a leaf; leaves hold between half this and this many.
 const LEAF_SIZE: usize = 16;
 
 /// Subtrees of at least this many points are built on two threads.
-const PARALLEL_MIN_BUILD: usize = 1 << 15;
+const PARALLEL_MIN_BUILD: usize = 1 << 13;
 
 /// Bounds on float32 rounding, used to turn a float64 distance into a lower bound on the float32
 /// one. The float32 distance takes five rounded operations, each with relative error at most
@@ -245,6 +247,22 @@ impl KdTree {
         if best.may_improve(norm2(&far_offsets)) {
             self.search(far.0, half, far.1, q, q64, far_offsets, best);
         }
+    }
+
+    /// How many leaves the tree has.
+    pub fn leaf_count(&self) -> usize {
+        self.leaves.len()
+    }
+
+    /// The points of `leaves`, leaf by leaf (so neighbours in space come together), each with
+    /// its item.
+    pub fn points(&self, leaves: Range<usize>) -> impl Iterator<Item = ([f32; 3], u32)> + '_ {
+        self.leaves[leaves].iter().flat_map(|leaf| {
+            let [xs, ys, zs] = &leaf.coords;
+            (0..LEAF_SIZE)
+                .take_while(|&k| leaf.items[k] != u32::MAX)
+                .map(move |k| ([xs[k], ys[k], zs[k]], leaf.items[k]))
+        })
     }
 
     #[inline]

@@ -4,6 +4,7 @@
 use std::collections::hash_map::{Entry, HashMap};
 use std::hash::{BuildHasherDefault, Hasher};
 use std::marker::PhantomData;
+use std::ops::Range;
 
 use rayon::prelude::*;
 
@@ -23,6 +24,8 @@ const PARALLEL_MIN_QUERIES: usize = 4096;
 /// Duplicates map back to their lowest index.
 pub struct NearestNeighborIndex<'a> {
     tree: KdTree,
+    /// With duplicates: by reference index, how many copies the point has there (its first).
+    copies: Option<Vec<u32>>,
     /// The index may borrow the reference cloud again in the future; callers already keep it.
     reference: PhantomData<&'a [[f32; 3]]>,
 }
@@ -37,55 +40,78 @@ impl Hasher for PointHasher {
         self.0
     }
     fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u32(u32::from(b));
+        // A key's three coordinates arrive as one 12-byte slice: hash them a word at a time.
+        for word in bytes.chunks(4) {
+            let mut padded = [0; 4];
+            padded[..word.len()].copy_from_slice(word);
+            self.write_u32(u32::from_le_bytes(padded));
         }
+    }
+    fn write_usize(&mut self, _length: usize) {
+        // Only the length prefix of the fixed-size key arrives here; it tells nothing.
     }
     fn write_u32(&mut self, value: u32) {
         self.0 = (self.0.rotate_left(5) ^ u64::from(value)).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
     }
 }
 
-/// The distinct points of `reference` and the first index of each, or `None` if all differ.
-fn distinct_points(reference: &[[f32; 3]]) -> Option<(Vec<[f32; 3]>, Vec<u32>)> {
+/// The distinct points of `reference`, as points and the first index of each, and by index
+/// of a first copy, the number of copies; or `None` if all differ.
+fn distinct_points(reference: &[[f32; 3]]) -> Option<Distinct> {
     // +0.0 turns -0.0 into 0.0, so equal coordinates have equal bits.
     let key = |p: &[f32; 3]| p.map(|c| (c + 0.0).to_bits());
     let mut first: HashMap<[u32; 3], u32, BuildHasherDefault<PointHasher>> =
         HashMap::with_capacity_and_hasher(reference.len(), BuildHasherDefault::default());
     let mut points = Vec::new();
     let mut original = Vec::new();
+    // Made at the first duplicate; only the entries of first copies are ever read.
+    let mut copies: Option<Vec<u32>> = None;
     for (i, p) in reference.iter().enumerate() {
-        if let Entry::Vacant(slot) = first.entry(key(p)) {
-            slot.insert(i as u32);
-            points.push(*p);
-            original.push(i as u32);
+        match first.entry(key(p)) {
+            Entry::Vacant(slot) => {
+                slot.insert(i as u32);
+                points.push(*p);
+                original.push(i as u32);
+            }
+            Entry::Occupied(slot) => {
+                copies.get_or_insert_with(|| vec![1; reference.len()])[*slot.get() as usize] += 1;
+            }
         }
     }
-    (points.len() < reference.len()).then_some((points, original))
+    copies.map(|copies| (points, original, copies))
 }
+
+type Distinct = (Vec<[f32; 3]>, Vec<u32>, Vec<u32>);
 
 impl<'a> NearestNeighborIndex<'a> {
     /// Build the tree; `reference` must be non-empty, finite and hold at most
     /// [`MAX_POINTS`](crate::error::MAX_POINTS) points, as [`nearest_neighbors`] checks (indices
     /// are `u32`).
     pub fn new(reference: &'a [[f32; 3]]) -> Self {
-        let entries = match distinct_points(reference) {
-            None => reference
-                .iter()
-                .enumerate()
-                .map(|(i, &point)| kdtree::Entry {
-                    point,
-                    item: i as u32,
-                })
-                .collect(),
-            Some((points, original)) => points
-                .into_iter()
-                .zip(original)
-                .map(|(point, item)| kdtree::Entry { point, item })
-                .collect(),
+        let (entries, copies) = match distinct_points(reference) {
+            None => (
+                reference
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &point)| kdtree::Entry {
+                        point,
+                        item: i as u32,
+                    })
+                    .collect(),
+                None,
+            ),
+            Some((points, original, copies)) => (
+                points
+                    .into_iter()
+                    .zip(original)
+                    .map(|(point, item)| kdtree::Entry { point, item })
+                    .collect(),
+                Some(copies),
+            ),
         };
         NearestNeighborIndex {
             tree: KdTree::new(entries, crate::parallel_allowed()),
+            copies,
             reference: PhantomData,
         }
     }
@@ -95,6 +121,21 @@ impl<'a> NearestNeighborIndex<'a> {
     #[inline]
     pub fn nearest(&self, q: &[f32; 3]) -> (f32, u32) {
         self.tree.nearest(q)
+    }
+
+    /// How many leaves the tree has; [`Self::points`] takes a range of them.
+    pub fn leaf_count(&self) -> usize {
+        self.tree.leaf_count()
+    }
+
+    /// The distinct reference points in `leaves`, in the tree's order (neighbours in space come
+    /// together, so answering them one after another keeps another tree's leaves in cache), each
+    /// with its number of copies in the reference cloud.
+    pub fn points(&self, leaves: Range<usize>) -> impl Iterator<Item = ([f32; 3], u32)> + '_ {
+        self.tree.points(leaves).map(|(point, item)| {
+            let copies = self.copies.as_ref().map_or(1, |c| c[item as usize]);
+            (point, copies)
+        })
     }
 
     /// Answer every query into `sq_dist`/`index`; in parallel when `parallel` and there are many.
