@@ -10,6 +10,7 @@ pub mod chamfer;
 pub mod crop;
 pub mod error;
 pub mod fps;
+pub mod metrics;
 pub mod nn;
 
 #[cfg(feature = "python")]
@@ -32,4 +33,5 @@ pub use crop::{
 };
 pub use error::{GeometryError, MAX_COORDINATE, MAX_POINTS};
 pub use fps::{farthest_point_sample, farthest_point_sample_naive};
+pub use metrics::minimal_matching;
 pub use nn::{nearest_neighbors, nearest_neighbors_naive, NearestNeighborIndex};

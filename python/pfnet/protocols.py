@@ -209,7 +209,7 @@ def shapenet_crop(points: np.ndarray, ratio: float, view: int) -> np.ndarray:
     distance = np.sqrt(((clouds - centre) ** 2).sum(axis=2, dtype=np.float32))
     order = np.argsort(distance, axis=1, kind="stable")[:, removed:]
     kept = np.take_along_axis(clouds, order[:, :, None], axis=1)
-    if kept.shape[1] > SHAPENET_INPUT_POINTS:
+    if kept.shape[1] >= SHAPENET_INPUT_POINTS:  # PoinTr samples 2,048 of 2,048 too (reorders)
         index = farthest_point_sample(kept, SHAPENET_INPUT_POINTS, start_index=0)
         kept = np.take_along_axis(kept, index[:, :, None], axis=1)
     kept = np.ascontiguousarray(kept, dtype=np.float32)
