@@ -13,6 +13,7 @@ pub mod error;
 pub mod fps;
 mod kdtree;
 pub mod lzf;
+pub mod metrics;
 pub mod nn;
 
 #[cfg(feature = "python")]
@@ -36,4 +37,5 @@ pub use crop::{
 pub use error::{GeometryError, MAX_COORDINATE, MAX_POINTS};
 pub use fps::{farthest_point_sample, farthest_point_sample_naive};
 pub use lzf::lzf_decompress;
+pub use metrics::minimal_matching;
 pub use nn::{nearest_neighbors, nearest_neighbors_naive, NearestNeighborIndex};

@@ -205,6 +205,24 @@ fn chamfer_py<'py>(
     ))
 }
 
+/// For every completion (C, N, 3), the smallest CD-L2 to any reference cloud (R, M, 3) and
+/// that reference's index: float64 (C,), int64 (C,) (KITTI's minimal matching distance).
+#[pyfunction]
+fn minimal_matching<'py>(
+    py: Python<'py>,
+    completions: PyReadonlyArray3<'py, f32>,
+    references: PyReadonlyArray3<'py, f32>,
+) -> PyResult<Pair<'py, PyArray1<f64>, PyArray1<i64>>> {
+    let comps = clouds("completions", &completions)?;
+    let refs = clouds("references", &references)?;
+    let found = py.detach(|| crate::metrics::minimal_matching(&comps, &refs))?;
+    let (dist, index): (Vec<f64>, Vec<i64>) = found.into_iter().map(|(d, j)| (d, j as i64)).unzip();
+    Ok((
+        Array1::from(dist).into_pyarray(py),
+        Array1::from(index).into_pyarray(py),
+    ))
+}
+
 /// Crop every cloud of a batch; `fill(i, cloud, kept, removed)` writes cloud `i`'s kept and
 /// removed coordinates into buffers with one spare point each (see `crop::write_split`).
 fn crop_batch<'py, T, F>(
@@ -401,6 +419,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(farthest_point_sample, m)?)?;
     m.add_function(wrap_pyfunction!(nearest_neighbors, m)?)?;
     m.add_function(wrap_pyfunction!(chamfer_py, m)?)?;
+    m.add_function(wrap_pyfunction!(minimal_matching, m)?)?;
     m.add_function(wrap_pyfunction!(crop_count_f32, m)?)?;
     m.add_function(wrap_pyfunction!(crop_count_f64, m)?)?;
     m.add_function(wrap_pyfunction!(crop_radius_f32, m)?)?;

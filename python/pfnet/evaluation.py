@@ -165,15 +165,7 @@ def evaluate_predictions(
     sample_keys = [f"{c}/{n}" for c, n in zip(clouds.category, clouds.name, strict=True)]
     partial, removed = test_protocol_crop(points, missing_ratio)
 
-    files = find_prediction_files(pred_dir)
-    wanted = set(sample_keys)
-    unmatched = sorted(str(p) for k, p in files.items() if k not in wanted)
-    present = [i for i, key in enumerate(sample_keys) if key in files]
-    missing = [key for key in sample_keys if key not in files]
-    n_workers = workers or min(8, (os.cpu_count() or 1) + 4)
-    with ThreadPoolExecutor(max_workers=n_workers) as pool:
-        loaded = list(pool.map(_load, [files[sample_keys[i]] for i in present], chunksize=64))
-
+    present, loaded, missing, unmatched = _read_predictions(pred_dir, sample_keys, workers)
     preds, gts, scored, unreadable, reasons = [], [], [], [], []
     for i, cloud in zip(present, loaded, strict=True):
         if isinstance(cloud, str):
@@ -225,11 +217,147 @@ def evaluate_predictions(
     )
 
 
+def _read_predictions(
+    pred_dir: Path, sample_keys: list[str], workers: int | None
+) -> tuple[list[int], list, list[str], list[str]]:
+    """Find and read the prediction file of each key (in a thread pool).
+
+    Returns:
+        The indices of the keys with a file, what was read for each (an array, or the
+        reason it could not be used), the keys without a file, and files matching no key.
+    """
+    files = find_prediction_files(pred_dir)
+    wanted = set(sample_keys)
+    unmatched = sorted(str(p) for k, p in files.items() if k not in wanted)
+    present = [i for i, key in enumerate(sample_keys) if key in files]
+    missing = [key for key in sample_keys if key not in files]
+    n_workers = workers or min(8, (os.cpu_count() or 1) + 4)
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        loaded = list(pool.map(_load, [files[sample_keys[i]] for i in present], chunksize=64))
+    return present, loaded, missing, unmatched
+
+
+def evaluate_benchmark(
+    pred_dir: str | os.PathLike[str],
+    data_dir: str | os.PathLike[str],
+    protocol: str,
+    *,
+    split: str = "test",
+    missing_ratio: float | None = None,
+    workers: int | None = None,
+) -> Evaluation:
+    """Score whole completions with a benchmark protocol (``pcn``, ``shapenet55``).
+
+    Prediction files are ``PRED/<category>/<name>.<ext>`` (``pcn``) or
+    ``PRED/<category>/<name>_view<v>.<ext>``, ``v`` = 0..7 (``shapenet55``: one completion
+    per viewpoint of :data:`pfnet.protocols.SHAPENET_VIEWPOINTS`), each the whole completion
+    in the data set's coordinates, any point count. Each is compared with the shape's
+    complete cloud by :func:`pfnet.metrics.sample_metrics` with PoinTr's ``ignore_zeros``;
+    per category the mean over its files, overall the unweighted mean of the categories (as
+    PoinTr's ``test()``); CD-L1, CD-L2 and the two directed terms ×1000, the F-score at 0.01.
+
+    Args:
+        pred_dir: The prediction folder.
+        data_dir: A data set, normally prepared from the benchmark's layout.
+        protocol: A name of :data:`pfnet.protocols.PROTOCOLS` other than ``pfnet``.
+        split: The split scored.
+        missing_ratio: ``shapenet55`` only: the ratio the inputs were cropped with (recorded
+            in the report; the ground truth is the complete cloud whatever the ratio).
+        workers: Threads reading files.
+
+    Raises:
+        ConfigError: Unknown protocol, or a ratio the protocol does not take.
+        DataError: Missing folders, or no prediction could be scored.
+    """
+    from pfnet.data import load_split
+    from pfnet.metrics import sample_metrics, summarize
+    from pfnet.protocols import get_protocol
+
+    chosen = get_protocol(protocol)
+    if chosen.prediction != "complete":
+        raise ConfigError(f"protocol {chosen.name!r} is scored by evaluate_predictions")
+    if chosen.ratios and missing_ratio is None:
+        missing_ratio = chosen.default_ratio
+    if not chosen.ratios and missing_ratio is not None:
+        raise ConfigError(
+            f"the {chosen.name} protocol takes no missing ratio (its inputs are given)"
+        )
+    if missing_ratio is not None and not 0.0 < missing_ratio < 1.0:
+        raise ConfigError(f"missing ratio must be in (0, 1), got {missing_ratio}")
+    if workers is not None and not 1 <= workers <= MAX_WORKERS:
+        raise ConfigError(f"workers must be in [1, {MAX_WORKERS}], got {workers}")
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise DataError(f"prediction folder {pred_dir} does not exist")
+    clouds = load_split(data_dir, split)
+    points = np.asarray(clouds.points)
+    keys, owner = [], []
+    for i, (cat, name) in enumerate(zip(clouds.category, clouds.name, strict=True)):
+        for key in chosen.sample_keys(str(cat), str(name)):
+            keys.append(key)
+            owner.append(i)
+    present, loaded, missing, unmatched = _read_predictions(pred_dir, keys, workers)
+    preds, gts, scored, unreadable, reasons = [], [], [], [], []
+    for k, cloud in zip(present, loaded, strict=True):
+        if isinstance(cloud, np.ndarray) and chosen.ignore_zeros:
+            if not (cloud.astype(np.float32).sum(axis=1, dtype=np.float32) != 0).any():
+                cloud = f"{keys[k]}: every point has x + y + z = 0 (PoinTr leaves such points out)"
+        if isinstance(cloud, str):
+            unreadable.append(keys[k])
+            reasons.append(cloud)
+            continue
+        preds.append(cloud)
+        gts.append(points[owner[k]])
+        scored.append(k)
+    if not scored:
+        raise DataError(
+            f"no prediction in {pred_dir} could be scored against {split!r} of "
+            f"{data_dir} ({len(missing)} missing, {len(unreadable)} unreadable of "
+            f"{len(keys)} files; expected files like {pred_dir / keys[0]}.npy)"
+            if keys
+            else f"split {split!r} of {data_dir} has no samples"
+        )
+    categories = [str(clouds.category[owner[k]]) for k in scored]
+    per_sample = sample_metrics(
+        _stack_if_equal(preds), _stack_if_equal(gts), 0.01, ignore_zeros=chosen.ignore_zeros
+    )
+    summary = summarize(per_sample, categories, scale=float(SCALE), scaled=chosen.scaled)
+    names = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1", "f_score")
+    report = {
+        "protocol": chosen.name,
+        "split": split,
+        "scale": SCALE,
+        "scaled": list(chosen.scaled),
+        "headline": chosen.headline,
+        "missing_ratio": None if missing_ratio is None else float(missing_ratio),
+        "categories": {
+            cat: {"n": int(row["n"]), **{k: float(row[k]) for k in names}}
+            for cat, row in summary["categories"].items()
+        },
+        "mean": {k: float(summary["mean"][k]) for k in names},
+        "missing": missing,
+        "unreadable": unreadable,
+    }
+    return Evaluation(
+        report=report,
+        categories=categories,
+        names=[keys[k].split("/", 1)[1] for k in scored],
+        per_sample={k: np.asarray(v, dtype=np.float64) for k, v in per_sample.items()},
+        missing=missing,
+        unreadable=unreadable,
+        reasons=reasons,
+        unmatched=unmatched,
+        n_samples=len(keys),
+        far=[keys[k] for k, p in zip(scored, preds, strict=True) if np.abs(p).max() > FAR],
+    )
+
+
 def recorded_protocol(
     pred_dir: str | os.PathLike[str],
-) -> tuple[str, float, int | None] | None:
+) -> tuple[str, float | None, int | None] | None:
     """The split, missing ratio and points per cloud ``PRED/predictions.json`` records (the
-    points ``None`` in records of older pfnet versions), or None without a record.
+    points ``None`` in records of older pfnet versions, the ratio ``None`` for a protocol
+    with given inputs), or None without a record.
 
     Predictions made by ``pfnet predict`` record their split and crop; scoring them with
     another crop compares each prediction with the wrong missing region, silently.
@@ -258,7 +386,8 @@ def recorded_protocol(
             "folder may mix old and new predictions); run pfnet predict again"
         )
     protocol = info["protocol"]
-    return info["split"], float(protocol["missing_ratio"]), protocol.get("n_points")
+    ratio = protocol.get("missing_ratio")
+    return info["split"], None if ratio is None else float(ratio), protocol.get("n_points")
 
 
 def _record_problem(info: Any) -> str | None:
@@ -283,8 +412,13 @@ def _record_problem(info: Any) -> str | None:
     protocol = info.get("protocol")
     if not isinstance(protocol, dict):
         return f'"protocol" must be an object, got {shown(protocol)}'
+    name = protocol.get("name", "test")  # "test": PF-Net's protocol, as older records name it
+    if not isinstance(name, str):
+        return f'"protocol.name" must be a protocol\'s name, got {shown(name)}'
+    benchmark = name not in ("test", "pfnet")
     ratio = protocol.get("missing_ratio")
-    if not (is_number(ratio) and 0 < ratio < 1):
+    # A benchmark protocol with given inputs (pcn) records no ratio.
+    if not (ratio is None and benchmark or is_number(ratio) and 0 < ratio < 1):
         return f'"protocol.missing_ratio" must be a number in (0, 1), got {shown(ratio)}'
     model = info.get("model", {})
     if not isinstance(model, dict):
@@ -297,12 +431,27 @@ def _record_problem(info: Any) -> str | None:
         if count is not None and not (is_int(count) and count >= 1):
             return f'"{key}" must be a positive integer, got {shown(count)}'
     points, trained = counts.values()
-    if None not in (points, trained) and points != trained:
+    # Benchmark protocols resample their clouds to the model's input, as complete does.
+    if not benchmark and None not in (points, trained) and points != trained:
         return (
             f"its model was trained on clouds of {trained} points but predicted clouds of "
             f"{points}: the scores would compare regions of different sizes"
         )
     return None
+
+
+def recorded_protocol_name(pred_dir: str | os.PathLike[str]) -> str | None:
+    """The protocol name ``PRED/predictions.json`` records (``pfnet`` for records of older
+    pfnet versions, which name it ``test``), or None without a record.
+
+    Raises:
+        DataError: If the record exists but cannot be read.
+    """
+    if recorded_protocol(pred_dir) is None:
+        return None
+    info = json.loads((Path(pred_dir) / "predictions.json").read_text(encoding="utf-8"))
+    name = info["protocol"].get("name", "test")
+    return "pfnet" if name == "test" else str(name)
 
 
 def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:

@@ -223,3 +223,144 @@ def predict_split(
     with atomic_path(out / "predictions.json") as tmp:
         tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
     return info
+
+
+def predict_benchmark(
+    checkpoint: str | os.PathLike[str] | None,
+    data_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    protocol: str,
+    *,
+    split: str = "test",
+    missing_ratio: float | None = None,
+    batch_size: int = 32,
+    device: str = "auto",
+    runtime: str = "auto",
+    chunk: int = 256,
+) -> dict:
+    """Complete every input of a benchmark protocol (``pcn``, ``shapenet55``) with a PF-Net
+    model and write the whole completions for ``pfnet evaluate --protocol``.
+
+    * ``pcn``: the input is the shape's given partial scan; as ``pfnet complete`` does, it
+      is normalised (centroid, max radius), resampled to the model's partial size (IFPS, or
+      cyclic repetition), and the predicted missing region is mapped back. The completion
+      is the scan followed by the prediction: ``PRED/<category>/<name>.npy``.
+    * ``shapenet55``: the input is PoinTr's 2,048-point crop from each of the 8 viewpoints
+      (:func:`pfnet.protocols.shapenet_crop`), already in the data set's unit ball, reduced
+      to the model's partial size by IFPS; the completion is the 2,048 input points followed
+      by the prediction: ``PRED/<category>/<name>_view<v>.npy``.
+
+    Returns:
+        The ``predictions.json`` document.
+
+    Raises:
+        ConfigError: Bad protocol, ratio, device or batch size.
+        DataError: Unreadable checkpoint or data set; a data set without partial scans
+            (``pcn``).
+    """
+    from pfnet.completion import network_input, normalisation
+    from pfnet.data import load_split
+    from pfnet.io import atomic_path, refuse_overlap, save_npy
+    from pfnet.protocols import get_protocol, shapenet_crop
+    from pfnet.runtimes import load_generator
+    from pfnet.shipped import describe, resolve_checkpoint
+
+    chosen = get_protocol(protocol)
+    if chosen.prediction != "complete":
+        raise ConfigError(f"protocol {chosen.name!r} is predicted by predict_split")
+    if batch_size < 1:
+        raise ConfigError(f"batch size must be at least 1, got {batch_size}")
+    if chosen.ratios:
+        ratio = float(chosen.default_ratio if missing_ratio is None else missing_ratio)
+        if not 0.0 < ratio < 1.0:
+            raise ConfigError(f"missing ratio must be in (0, 1), got {ratio}")
+    elif missing_ratio is not None:
+        raise ConfigError(
+            f"the {chosen.name} protocol takes no missing ratio (its inputs are given)"
+        )
+    else:
+        ratio = None
+    checkpoint = resolve_checkpoint(checkpoint)
+    refuse_overlap(out_dir, [data_dir, checkpoint], flag="prediction folder")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(
+            f"prediction folder {out_dir} is a file; name a folder for the predictions"
+        )
+    clouds = load_split(data_dir, split)
+    if len(clouds) == 0:
+        raise DataError(f"split {split!r} of {data_dir} has no samples")
+    partials = None
+    if chosen.input == "given":
+        from pfnet.data.benchmarks import load_partials
+
+        partials = load_partials(data_dir, split, len(clouds))
+    loaded = load_generator(checkpoint, runtime=runtime, device=device)
+    model, config, device = loaded.model, loaded.config, loaded.device
+    n_input = int(model.n_points) - int(model.n_missing)
+    categories = sorted(set(map(str, clouds.category)))
+    for category in categories:
+        folder = out / category
+        if folder.is_symlink() or (
+            folder.exists() and not folder.resolve().is_relative_to(out.resolve())
+        ):
+            raise DataError(
+                f"{folder} is a link out of the prediction folder {out}; remove it first"
+            )
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"complete": False, "split": split, "protocol": {"name": chosen.name}}
+    with atomic_path(out / "predictions.json") as tmp:
+        tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
+    for category in categories:
+        (out / category).mkdir(exist_ok=True)
+    n_predicted = 0
+    for start in range(0, len(clouds), chunk):
+        stop = min(start + chunk, len(clouds))
+        keys = [
+            chosen.sample_keys(str(c), str(n))
+            for c, n in zip(clouds.category[start:stop], clouds.name[start:stop], strict=True)
+        ]
+        if partials is not None:
+            given = partials[start:stop]
+            transforms = [normalisation(p, f"{k[0]} (partial scan)") for p, k in zip(given, keys)]
+            batch = np.stack(
+                [network_input(t.apply(p), n_input) for p, t in zip(given, transforms, strict=True)]
+            )
+            detail = predict_missing(model, batch, batch_size, device)
+            for p, t, d, k in zip(given, transforms, detail, keys, strict=True):
+                save_npy(out / f"{k[0]}.npy", np.concatenate([p, t.invert(d)]).astype(np.float32))
+            n_predicted = int(detail.shape[1])
+            continue
+        for view in range(chosen.views):
+            crops = shapenet_crop(np.asarray(clouds.points[start:stop]), ratio, view)
+            batch = np.stack([network_input(c, n_input) for c in crops])
+            detail = predict_missing(model, batch, batch_size, device)
+            for c, d, k in zip(crops, detail, keys, strict=True):
+                save_npy(out / f"{k[view]}.npy", np.concatenate([c, d]).astype(np.float32))
+            n_predicted = int(detail.shape[1])
+    info = {
+        "complete": True,
+        "checkpoint": describe(checkpoint),
+        "data": str(Path(data_dir).resolve()),
+        "split": split,
+        "protocol": {
+            "name": chosen.name,
+            "missing_ratio": ratio,
+            "n_points": int(clouds.n_points),
+            "views": chosen.views,
+            "input": "given partial scan" if partials is not None else "PoinTr's 2,048-point crop",
+        },
+        "model": {
+            "name": config.model,
+            "n_points": config.n_points,
+            "missing_ratio": config.missing_ratio,
+            "n_input": n_input,
+            "n_predicted": n_predicted,
+        },
+        "n_samples": len(clouds) * chosen.views,
+        "device": device,
+        "runtime": loaded.runtime,
+    }
+    with atomic_path(out / "predictions.json") as tmp:
+        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
+    return info

@@ -36,13 +36,26 @@ def _pairs(pred, gt) -> list[tuple[np.ndarray, np.ndarray]]:
     return list(zip(pred, gt))
 
 
-def sample_metrics(pred, gt, f_threshold: float = 0.01) -> dict[str, np.ndarray]:
+def sample_metrics(
+    pred, gt, f_threshold: float = 0.01, *, ignore_zeros: bool = False
+) -> dict[str, np.ndarray]:
     """Per-sample completion metrics, in raw units (not ×1000).
+
+    These are PoinTr's formulas (``extensions/chamfer_dist/__init__.py``,
+    ``utils/metrics.py``): with ``d(p, Q)`` the Euclidean distance from ``p`` to its nearest
+    point of ``Q``, ``CD-L2 = mean_P d(p, G)² + mean_G d(g, P)²``, ``CD-L1 = (mean_P d(p, G) +
+    mean_G d(g, P)) / 2``, and ``F = 2·precision·recall / (precision + recall)`` (0 when both
+    are 0) with precision the share of predicted points with ``d(p, G) < threshold`` and
+    recall the share of ground-truth points with ``d(g, P) < threshold``.
 
     Args:
         pred: Predicted clouds, a ``(B, P, 3)`` array or a list of ``(P_i, 3)`` arrays.
         gt: Ground-truth clouds, ``(B, G, 3)`` or a list of ``(G_i, 3)`` arrays.
         f_threshold: Distance threshold of the F-score (in the clouds' units).
+        ignore_zeros: Leave points whose coordinates sum to exactly 0 out of both clouds
+            before the Chamfer terms, as PoinTr's ``ChamferDistanceL1/L2(ignore_zeros=True)``
+            does at batch size 1 (its test loop); the F-score keeps every point. A cloud left
+            empty by it raises ``ValueError``.
 
     Returns:
         float64 ``(B,)`` arrays: ``pred_to_gt`` and ``gt_to_pred`` (Eq. 1's two terms: mean
@@ -74,9 +87,12 @@ def sample_metrics(pred, gt, f_threshold: float = 0.01) -> dict[str, np.ndarray]
         ]
     t2 = float(f_threshold) ** 2
     for i, (pg, gp) in enumerate(rows):
-        out["pred_to_gt"][i] = pg.mean()
-        out["gt_to_pred"][i] = gp.mean()
-        out["cd_l1"][i] = 0.5 * (np.sqrt(pg).mean() + np.sqrt(gp).mean())
+        cd_pg, cd_gp = pg, gp
+        if ignore_zeros:
+            cd_pg, cd_gp = _without_zero_sum(pairs[i][0], pairs[i][1], pg, gp)
+        out["pred_to_gt"][i] = cd_pg.mean()
+        out["gt_to_pred"][i] = cd_gp.mean()
+        out["cd_l1"][i] = 0.5 * (np.sqrt(cd_pg).mean() + np.sqrt(cd_gp).mean())
         precision = float((pg < t2).mean())
         recall = float((gp < t2).mean())
         total = precision + recall
@@ -85,8 +101,33 @@ def sample_metrics(pred, gt, f_threshold: float = 0.01) -> dict[str, np.ndarray]
     return out
 
 
+def zero_sum_mask(cloud: np.ndarray) -> np.ndarray:
+    """Points PoinTr's ``ignore_zeros`` keeps: ``x + y + z != 0``, summed in float32."""
+    return np.asarray(cloud, dtype=np.float32).sum(axis=1, dtype=np.float32) != 0
+
+
+def _without_zero_sum(
+    pred: np.ndarray, gt: np.ndarray, pg: np.ndarray, gp: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two directed squared-distance arrays over the clouds without zero-sum points."""
+    keep_p, keep_g = zero_sum_mask(pred), zero_sum_mask(gt)
+    if keep_p.all() and keep_g.all():
+        return pg, gp
+    if not keep_p.any() or not keep_g.any():
+        raise ValueError("every point of a cloud has x + y + z = 0: no Chamfer distance")
+    p = np.ascontiguousarray(pred[keep_p])
+    g = np.ascontiguousarray(gt[keep_g])
+    return (
+        nearest_neighbors(p, g)[0].astype(np.float64),
+        nearest_neighbors(g, p)[0].astype(np.float64),
+    )
+
+
 def summarize(
-    per_sample: dict[str, ArrayLike], categories: Sequence[str], scale: float = 1000.0
+    per_sample: dict[str, ArrayLike],
+    categories: Sequence[str],
+    scale: float = 1000.0,
+    scaled: Sequence[str] = SCALED,
 ) -> dict:
     """Per-category means and their unweighted mean, as in the paper's tables.
 
@@ -94,6 +135,7 @@ def summarize(
         per_sample: Output of :func:`sample_metrics` (any subset of its keys).
         categories: The category of each sample, same length as the arrays.
         scale: Factor for the squared-distance metrics (the paper reports ×1000).
+        scaled: The metrics multiplied by ``scale`` (PoinTr's protocols scale CD-L1 too).
 
     Returns:
         ``{"categories": {cat: {"n": int, metric: float, ...}}, "mean": {metric: float}}``,
@@ -112,10 +154,50 @@ def summarize(
         sel = categories == cat
         row: dict = {"n": int(sel.sum())}
         for m in names:
-            row[m] = float(values[m][sel].mean()) * (scale if m in SCALED else 1.0)
+            row[m] = float(values[m][sel].mean()) * (scale if m in scaled else 1.0)
         table[cat] = row
     mean = {
         m: float(np.mean([row[m] for row in table.values()])) if table else float("nan")
         for m in names
     }
     return {"categories": table, "mean": mean}
+
+
+def fidelity(inputs, completions) -> np.ndarray:
+    """KITTI's Fidelity of each completion: the mean squared distance from each input point to
+    its nearest completion point (PoinTr ``KITTI_metric.py``: ``ChamferDistanceL2_split``'s
+    first term, input → completion), raw units (papers report it ×1000).
+
+    Args:
+        inputs: The partial inputs, ``(B, N, 3)`` or a list of ``(N_i, 3)`` arrays.
+        completions: The completions, ``(B, M, 3)`` or a list of ``(M_i, 3)`` arrays.
+
+    Returns:
+        float64 ``(B,)``.
+    """
+    return sample_metrics(completions, inputs)["gt_to_pred"]
+
+
+def minimal_matching_distance(completions, references) -> tuple[np.ndarray, np.ndarray]:
+    """KITTI's MMD terms: for each completion, the smallest CD-L2 (``mean_C d(c, R)² +
+    mean_R d(r, C)²``, PoinTr's ``ChamferDistanceL2``) to any reference cloud (ShapeNet's
+    cars), and which one. The MMD is the mean of the first array (×1000 in papers).
+
+    Exact, as computing every pair, but each completion's search drops a reference as soon
+    as its partial sums exceed the best distance found (the Rust core, all cores).
+
+    Args:
+        completions: float32 ``(C, N, 3)``.
+        references: float32 ``(R, M, 3)``.
+
+    Returns:
+        float64 ``(C,)`` distances and int64 ``(C,)`` reference indices.
+    """
+    from pfnet._core import minimal_matching
+
+    comps = np.ascontiguousarray(completions, dtype=np.float32)
+    refs = np.ascontiguousarray(references, dtype=np.float32)
+    for label, array in (("completions", comps), ("references", refs)):
+        if array.ndim != 3 or array.shape[2] != 3:
+            raise ValueError(f"{label} must be a (B, N, 3) array, got shape {array.shape}")
+    return minimal_matching(comps, refs)

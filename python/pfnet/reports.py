@@ -35,11 +35,34 @@ def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
     return "\n".join(lines)
 
 
+def format_benchmark_table(report: dict) -> str:
+    """A benchmark protocol's table (:func:`pfnet.evaluation.evaluate_benchmark`): per category
+    CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 and the F-score, then the unweighted mean."""
+    header = (
+        f"{'category':<16} {'n':>6} {'CD-L1':>9} {'CD-L2':>9} {'Pred→GT':>9} "
+        f"{'GT→Pred':>9} {'F@0.01':>7}"
+    )
+    lines = [header, "-" * len(header)]
+
+    def row(name: str, n: object, m: dict) -> str:
+        return (
+            f"{name:<16} {n!s:>6} {m['cd_l1']:>9.3f} {m['cd_l2']:>9.3f} "
+            f"{m['pred_to_gt']:>9.3f} {m['gt_to_pred']:>9.3f} {m['f_score']:>7.3f}"
+        )
+
+    for cat, m in sorted(report["categories"].items()):
+        lines.append(row(cat, m["n"], m))
+    lines.append("-" * len(header))
+    total = sum(m["n"] for m in report["categories"].values())
+    lines.append(row("mean", total, report["mean"]))
+    return "\n".join(lines)
+
+
 def write_csv(path: Path, evaluation: Evaluation) -> None:
     """Per-sample scores: category, name and the metrics (×1000 except the F-score)."""
     from pfnet.io import atomic_path
 
-    keys = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")
+    keys = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")  # every one ×1000 here
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="", encoding="utf-8") as fh:
             writer = csv.writer(fh)

@@ -19,13 +19,16 @@ from pfnet.evaluation import (
     REGIONS,
     SCALE,
     Evaluation,
+    evaluate_benchmark,
     evaluate_predictions,
     recorded_protocol,
+    recorded_protocol_name,
     render_evaluation_gallery,
 )
 from pfnet.rendering import MAX_ROWS
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
+PROTOCOL_NAMES = ("pfnet", "pcn", "shapenet55", "shapenet34")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,7 +49,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="score even if --split/--missing-ratio differ from PRED/predictions.json",
     )
     parser.add_argument(
-        "--region", choices=REGIONS, default="missing", help="region scored (default: missing)"
+        "--protocol",
+        choices=PROTOCOL_NAMES,
+        default=None,
+        help="pfnet: PF-Net's crop, missing region, squared CD ×1000; pcn, shapenet55 "
+        "(= shapenet34): whole completions scored as PoinTr does (CD-L1/CD-L2 ×1000, "
+        "F-score@0.01) (default: the one recorded in PRED/predictions.json, else pfnet)",
+    )
+    parser.add_argument(
+        "--region",
+        choices=REGIONS,
+        default=None,
+        help="pfnet protocol: region scored (default: missing)",
     )
     parser.add_argument(
         "--pred-is-complete",
@@ -83,6 +97,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
     if args.gallery is not None and args.gallery.suffix.lower() not in (".png", ".html"):
         raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
+    protocol = _scoring_protocol(args)
+    if protocol != "pfnet":
+        return _run_benchmark(args, protocol)
+    args.region = args.region or "missing"
     if args.pred_is_complete and args.region != "whole":
         raise ConfigError("--pred-is-complete needs --region whole")
     if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
@@ -137,6 +155,103 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _scoring_protocol(args: argparse.Namespace) -> str:
+    """``--protocol``, else the one PRED/predictions.json records, else ``pfnet``; a
+    ``--protocol`` that differs from the record is refused."""
+    from pfnet.protocols import get_protocol
+
+    try:
+        recorded = recorded_protocol_name(args.pred)
+    except DataError:
+        recorded = None  # _scoring_ratio reports the unreadable record
+    asked = None if args.protocol is None else get_protocol(args.protocol).name
+    if asked is None:
+        return recorded or "pfnet"
+    if recorded is not None and recorded != asked and not args.ignore_recorded_protocol:
+        raise ConfigError(
+            f"{args.pred} holds predictions made with the {recorded} protocol "
+            f"({Path(args.pred) / 'predictions.json'}); pass --protocol {recorded}, or "
+            "--ignore-recorded-protocol"
+        )
+    return asked
+
+
+def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
+    """``pfnet evaluate --protocol pcn|shapenet55``: whole completions scored as PoinTr does."""
+    from pfnet.io import check_report_path
+    from pfnet.protocols import get_protocol
+    from pfnet.reports import format_benchmark_table, write_csv, write_json
+
+    chosen = get_protocol(protocol)
+    for flag, value in (
+        ("--region", args.region),
+        ("--pred-is-complete", args.pred_is_complete or None),
+        ("--gallery", args.gallery),
+    ):
+        if value is not None:
+            raise ConfigError(f"{flag} applies to the pfnet protocol, not to {protocol}")
+    if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
+        raise ConfigError(f"--workers must be in [1, {MAX_WORKERS}], got {args.workers}")
+    ratio = args.missing_ratio
+    if not chosen.ratios and ratio is not None:
+        raise ConfigError(f"--missing-ratio does not apply to the {protocol} protocol")
+    try:
+        recorded = recorded_protocol(args.pred)
+    except DataError as err:
+        if not args.ignore_recorded_protocol:
+            raise ConfigError(
+                f"{err}; fix or remove it, or pass --ignore-recorded-protocol"
+            ) from None
+        recorded = None
+    if recorded is not None and not args.ignore_recorded_protocol:
+        made_split, made_ratio, _ = recorded
+        if made_split != args.split:
+            raise ConfigError(
+                f"{args.pred} holds predictions of the {made_split!r} split; pass --split "
+                f"{made_split}, or --ignore-recorded-protocol"
+            )
+        if chosen.ratios:
+            if ratio is not None and abs(ratio - made_ratio) > 1e-9:
+                raise ConfigError(
+                    f"{args.pred} was predicted with {made_ratio:g} missing, not {ratio:g}; "
+                    "drop --missing-ratio, or pass --ignore-recorded-protocol"
+                )
+            ratio = made_ratio
+    for flag in ("json", "csv"):
+        if getattr(args, flag) is not None:
+            check_report_path(getattr(args, flag), args.pred, [args.data], flag=f"--{flag}")
+    evaluation = evaluate_benchmark(
+        args.pred,
+        args.data,
+        protocol,
+        split=args.split,
+        missing_ratio=ratio,
+        workers=args.workers,
+    )
+    report = evaluation.report
+    shown = "" if report["missing_ratio"] is None else f", {report['missing_ratio']:.0%} missing"
+    print(
+        f"{args.pred} vs {args.data} [{args.split}]: protocol {protocol}{shown}, "
+        f"{len(evaluation.categories)} of {evaluation.n_samples} completions scored"
+    )
+    print(f"{chosen.title}; CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 (PoinTr's), F-score at 0.01")
+    print(format_benchmark_table(report))
+    if args.json is not None:
+        write_json(args.json, report)
+        print(f"wrote {args.json}")
+    if args.csv is not None:
+        write_csv(args.csv, evaluation)
+        print(f"wrote {args.csv}")
+    problems = _report_problems(evaluation)
+    if problems and not args.allow_missing:
+        print(
+            "pfnet evaluate: some samples were not scored (pass --allow-missing to accept)",
+            file=sys.stderr,
+        )
+        return 2
+    return 0
+
+
 def _scoring_ratio(args: argparse.Namespace) -> float:
     """The missing ratio to score with, checked against ``PRED/predictions.json`` if present.
 
@@ -155,6 +270,8 @@ def _scoring_ratio(args: argparse.Namespace) -> float:
     if recorded is None:
         return 0.25 if asked is None else asked
     made_split, made_ratio, made_points = recorded
+    if made_ratio is None:  # a pcn record scored with the pfnet protocol
+        return 0.25 if asked is None else asked
     ratio = made_ratio if asked is None else asked
     if args.ignore_recorded_protocol:
         return ratio

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
-from pfnet.inference import predict_split
+from pfnet.inference import predict_benchmark, predict_split
 from pfnet.rendering import MAX_ROWS
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 from pfnet.shipped import CHECKPOINT_HELP
@@ -31,10 +31,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="prepared data set folder")
     parser.add_argument("--split", default="test", help="split to predict (default: test)")
     parser.add_argument(
+        "--protocol",
+        choices=("pfnet", "pcn", "shapenet55", "shapenet34"),
+        default="pfnet",
+        help="pfnet (default): PF-Net's crop, the missing region is written; pcn: the given "
+        "partial scans; shapenet55 (= shapenet34): PoinTr's 8 viewpoints; the last two write "
+        "whole completions for evaluate --protocol",
+    )
+    parser.add_argument(
         "--missing-ratio",
         type=float,
         default=None,
-        help="fraction of points the test crop removes (default: the checkpoint's)",
+        help="fraction of points the test crop removes (default: the checkpoint's; "
+        "shapenet55: 0.25, 0.5 or 0.75, default 0.25)",
     )
     parser.add_argument("--out", type=Path, required=True, help="prediction folder to write")
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
@@ -59,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the predictions")
+    if args.protocol != "pfnet":
+        return _run_benchmark(args)
     if args.gallery is not None:  # before predicting: never over the data or the checkpoint
         from pfnet.data.format import split_categories
         from pfnet.io import check_report_path
@@ -101,4 +112,31 @@ def run(args: argparse.Namespace) -> int:
         )
         print(f"wrote {path}")
     print(f"score it: pfnet evaluate {args.out} --data {args.data} --missing-ratio {ratio:g}")
+    return 0
+
+
+def _run_benchmark(args: argparse.Namespace) -> int:
+    """``pfnet predict --protocol pcn|shapenet55``: whole completions of the benchmark's inputs."""
+    if args.gallery is not None:
+        raise ConfigError(f"--gallery applies to the pfnet protocol, not to {args.protocol}")
+    info = predict_benchmark(
+        args.checkpoint,
+        args.data,
+        args.out,
+        args.protocol,
+        split=args.split,
+        missing_ratio=args.missing_ratio,
+        batch_size=args.batch_size,
+        device=args.device,
+        runtime=args.runtime,
+    )
+    ratio = info["protocol"]["missing_ratio"]
+    shown = "" if ratio is None else f", {ratio:.0%} missing"
+    print(
+        f"wrote {info['n_samples']} completions (input + {info['model']['n_predicted']} "
+        f"predicted points) to {args.out} ({info['split']} split, protocol "
+        f"{info['protocol']['name']}{shown})"
+    )
+    name = info["protocol"]["name"]
+    print(f"score it: pfnet evaluate {args.out} --data {args.data} --protocol {name}")
     return 0

@@ -1,5 +1,5 @@
-"""``pfnet prepare``: build a completion dataset from meshes, ShapeNet-Part, SweetHome3D or
-procedural shapes."""
+"""``pfnet prepare``: build a completion dataset from meshes, ShapeNet-Part, SweetHome3D,
+procedural shapes, or the PCN and ShapeNet-55/34 benchmarks."""
 
 from __future__ import annotations
 
@@ -16,17 +16,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "source",
         metavar="SOURCE",
-        help="a folder (ROOT/<category>/<mesh>, a ShapeNet-Part tree, *.sh3f catalogues), "
-        "a .sh3f file, or the word 'procedural'",
+        help="a folder (ROOT/<category>/<mesh>, a ShapeNet-Part, PCN or ShapeNet-55/34 tree, "
+        "*.sh3f catalogues), a .sh3f file, or the word 'procedural'",
     )
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write")
     parser.add_argument(
         "--format",
         default="auto",
-        choices=("auto", "meshes", "shapenet-part", "sweethome3d", "procedural"),
+        choices=(
+            "auto",
+            "meshes",
+            "shapenet-part",
+            "sweethome3d",
+            "procedural",
+            "pcn",
+            "shapenet-55",
+            "shapenet-34",
+            "shapenet-unseen21",
+        ),
         help="source format (default: auto-detect)",
     )
-    parser.add_argument("--points", type=int, default=2048, help="points per shape (default 2048)")
+    parser.add_argument(
+        "--points",
+        type=int,
+        default=None,
+        help="points per shape (default 2048; the benchmarks keep their own)",
+    )
     parser.add_argument(
         "--seed", type=int, default=0, help="seed of sampling and splits (default 0)"
     )

@@ -447,6 +447,7 @@ def write_dataset(
     manifest: Mapping[str, object],
     *,
     overwrite: bool = False,
+    side_files: Mapping[str, Mapping[str, np.ndarray]] | None = None,
 ) -> Path:
     """Write a dataset folder atomically.
 
@@ -458,6 +459,8 @@ def write_dataset(
         splits: A :class:`CloudSet` for each of ``SPLITS``.
         manifest: The manifest (JSON-serialisable).
         overwrite: Whether an existing non-empty ``out`` may be replaced.
+        side_files: More ``.npz`` files to write in the folder, ``{file name: arrays}``
+            (a benchmark's given partial scans, :mod:`pfnet.data.benchmarks`).
 
     Returns:
         ``out`` as a Path.
@@ -481,6 +484,8 @@ def write_dataset(
             if cloud_set.extra is not None:
                 arrays["extra"] = cloud_set.extra
             _write_npz(tmp / f"{split}.npz", arrays)
+        for file_name, side_arrays in (side_files or {}).items():
+            _write_npz(tmp / file_name, side_arrays)
         text = json.dumps(manifest, indent=2, ensure_ascii=False) + "\n"
         (tmp / MANIFEST_NAME).write_text(text, encoding="utf-8")
         if path.exists():

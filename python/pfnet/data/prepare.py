@@ -106,11 +106,13 @@ def detect_format(source: str | os.PathLike[str] | None) -> str:
         source: ``None`` or ``"procedural"``, a ``.sh3f`` file, or a folder.
 
     Returns:
-        One of :data:`pfnet.data.sources.FORMATS`.
+        One of :data:`pfnet.data.sources.FORMATS` or
+        :data:`pfnet.data.benchmarks.BENCHMARK_FORMATS`.
 
     Raises:
         DataError: The source does not exist or matches no format.
     """
+    from pfnet.data.benchmarks import detect_benchmark
     from pfnet.data.sources import meshes, shapenet_part, sweethome3d
 
     if source is None or str(source) == "procedural":
@@ -122,6 +124,9 @@ def detect_format(source: str | os.PathLike[str] | None) -> str:
         return "sweethome3d"
     if shapenet_part.looks_like(path):
         return "shapenet-part"
+    benchmark = detect_benchmark(path)
+    if benchmark is not None:
+        return benchmark
     if meshes.looks_like(path):
         return "meshes"
     if path.is_dir() and not any(path.iterdir()):
@@ -305,7 +310,7 @@ def prepare_dataset(
     out: str | os.PathLike[str],
     *,
     format: str = "auto",
-    points: int = 2048,
+    points: int | None = None,
     seed: int = 0,
     test_fraction: float = 0.2,
     val_fraction: float = 0.1,
@@ -327,8 +332,10 @@ def prepare_dataset(
         source: A folder or ``.sh3f`` file; ``None`` or ``"procedural"`` for procedural shapes.
         out: The dataset folder to write (atomically).
         format: ``"auto"`` or one of ``meshes``, ``shapenet-part``, ``sweethome3d``,
-            ``procedural``.
-        points: Points per shape.
+            ``procedural``, or a benchmark layout (``pcn``, ``shapenet-55``, ``shapenet-34``,
+            ``shapenet-unseen21``; :mod:`pfnet.data.benchmarks`), which keeps the
+            benchmark's own clouds, splits and coordinates.
+        points: Points per shape (default 2048; benchmarks keep their own count).
         seed: Seeds sampling, procedural shapes and splits.
         test_fraction: Share of each category for ``test`` (sources without their own split).
         val_fraction: Share of each category for ``val`` (sources without their own split).
@@ -351,12 +358,40 @@ def prepare_dataset(
         DataError: The source is missing, empty or of unknown format; every shape failed; or
             (with ``strict``) any shape failed.
     """
+    from pfnet.data.benchmarks import BENCHMARK_FORMATS, prepare_benchmark
+
     start = time.perf_counter()
+    if format != "auto" and format not in (*FORMATS, *BENCHMARK_FORMATS):
+        raise ConfigError(
+            f"format must be auto or one of {', '.join((*FORMATS, *BENCHMARK_FORMATS))}, "
+            f"got {format!r}"
+        )
+    fmt = format
+    if format == "auto" and source is not None and str(source) != "procedural":
+        fmt = detect_format(source)
+    if fmt in BENCHMARK_FORMATS:
+        if points is not None or pool is not None or count is not None:
+            raise ConfigError(
+                f"the {fmt} benchmark keeps its own clouds: points, pool and count do not apply"
+            )
+        _check_arguments(2048, seed, test_fraction, val_fraction, workers)
+        refuse_overlap(out, [source], flag="data set folder")
+        check_output(out, overwrite)
+        if isinstance(categories, str):
+            categories = [c.strip() for c in categories.split(",") if c.strip()]
+        return prepare_benchmark(
+            source,
+            out,
+            fmt,
+            categories=None if categories in (None, ["all"]) else list(categories),
+            workers=workers,
+            strict=strict,
+            overwrite=overwrite,
+        )
+    points = 2048 if points is None else points
     _check_arguments(points, seed, test_fraction, val_fraction, workers)
     points, seed = int(points), int(seed)
     workers = None if workers is None else int(workers)
-    if format != "auto" and format not in FORMATS:
-        raise ConfigError(f"format must be auto or one of {', '.join(FORMATS)}, got {format!r}")
     if count is not None and (not _is_integer(count) or not 1 <= count <= MAX_COUNT):
         raise ConfigError(f"count must be an integer in [1, {MAX_COUNT}], got {count!r}")
     count = None if count is None else int(count)
@@ -368,7 +403,7 @@ def prepare_dataset(
     if source is not None and str(source) != "procedural":
         refuse_overlap(out, [source], flag="data set folder")
     out_path = check_output(out, overwrite)
-    fmt = detect_format(source) if format == "auto" else format
+    fmt = detect_format(source) if fmt == "auto" else fmt
     scan = _scan(fmt, source, count, strict)
     if strict and scan.skipped:
         path, reason = scan.skipped[0]

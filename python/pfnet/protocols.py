@@ -1,0 +1,216 @@
+"""Evaluation protocols: how the input of each test sample is made and how it is scored.
+
+A protocol names everything a published number depends on: where the partial input comes
+from (a crop of the complete cloud, or the benchmark's own partial scan), what the model's
+output is compared with, and which metrics, in which units. ``pfnet predict --protocol`` and
+``pfnet evaluate --protocol`` take these names.
+
+* ``pfnet`` — PF-Net's own (DESIGN.md §3, §5): test sample *i* loses the ``round(r·N)``
+  points nearest ``VIEWPOINTS[i % 5]``; the prediction is the missing region, scored with
+  Eq. 1's two squared terms ×1000 (region ``missing``, or ``whole`` with the partial input).
+* ``pcn`` — the PCN benchmark as PoinTr, SnowflakeNet and SeedFormer score it: the
+  benchmark's partial scan (view ``00.pcd`` of each test shape) is the input, the output is
+  the whole completion, compared with the 16,384-point complete cloud; CD-L1 ×1000 is the
+  headline number.
+* ``shapenet55`` — ShapeNet-55 and ShapeNet-34 (PoinTr, ``tools/runner.py`` ``test``): each
+  normalised 8,192-point test cloud is cropped from each of 8 fixed viewpoints
+  :data:`SHAPENET_VIEWPOINTS`: the ``int(8192·r)`` points nearest the viewpoint go
+  (``r`` = 0.25 / 0.5 / 0.75, *easy* / *median* / *hard*), the rest, in order of increasing
+  distance, are reduced to 2,048 points by farthest point sampling from their first point;
+  the whole completion is compared with the 8,192 points. CD-L2 ×1000 is the headline number.
+
+Metrics of ``pcn`` and ``shapenet55`` are PoinTr's (``utils/metrics.py``,
+``extensions/chamfer_dist/__init__.py``): see :func:`pfnet.metrics.sample_metrics`. As
+PoinTr's ``ChamferDistanceL1/L2(ignore_zeros=True)`` at batch size 1, points whose
+coordinates sum to exactly 0 are left out of both clouds before the Chamfer terms (not
+before the F-score).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pfnet.errors import ConfigError
+
+__all__ = [
+    "PROTOCOLS",
+    "SHAPENET_INPUT_POINTS",
+    "SHAPENET_VIEWPOINTS",
+    "Protocol",
+    "get_protocol",
+    "shapenet_crop",
+    "shapenet_missing_count",
+]
+
+SHAPENET_VIEWPOINTS = np.array(
+    [
+        [1, 1, 1],
+        [1, 1, -1],
+        [1, -1, 1],
+        [-1, 1, 1],
+        [-1, -1, 1],
+        [-1, 1, -1],
+        [1, -1, -1],
+        [-1, -1, -1],
+    ],
+    dtype=np.float32,
+)
+"""PoinTr's 8 test viewpoints, in its order (``tools/runner.py``, ``choice``); used as
+points, not normalised."""
+
+SHAPENET_INPUT_POINTS = 2048
+"""Points of the ShapeNet-55/34 input after the crop (PoinTr: ``misc.fps(partial, 2048)``)."""
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """A named evaluation protocol.
+
+    Attributes:
+        name: The name ``--protocol`` takes.
+        title: One line for tables and reports.
+        input: ``"crop"`` (the partial input is cut from the complete cloud) or ``"given"``
+            (the benchmark's partial scan, stored by ``pfnet prepare``).
+        prediction: What a prediction file holds: ``"missing"`` (the missing region) or
+            ``"complete"`` (the whole completion).
+        views: Test inputs made from each shape (8 for ShapeNet-55/34, else 1).
+        ratios: The missing ratios the benchmark defines (empty: not a crop).
+        default_ratio: The ratio used when none is given.
+        scaled: Metrics reported ×1000.
+        headline: The metric papers compare first.
+        ignore_zeros: Leave points whose coordinates sum to 0 out of the Chamfer terms
+            (PoinTr's ``ignore_zeros=True``).
+        source: Where the protocol is defined.
+    """
+
+    name: str
+    title: str
+    input: str
+    prediction: str
+    views: int
+    ratios: tuple[float, ...]
+    default_ratio: float | None
+    scaled: tuple[str, ...]
+    headline: str
+    ignore_zeros: bool
+    source: str
+
+    def sample_keys(self, category: str, name: str) -> list[str]:
+        """The ``<category>/<file stem>`` of each prediction file of one shape."""
+        if self.views == 1:
+            return [f"{category}/{name}"]
+        return [f"{category}/{name}_view{v}" for v in range(self.views)]
+
+
+_POINTR_METRICS = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")
+
+PROTOCOLS: dict[str, Protocol] = {
+    "pfnet": Protocol(
+        name="pfnet",
+        title="PF-Net: crop from VIEWPOINTS[i % 5], missing region scored, squared CD ×1000",
+        input="crop",
+        prediction="missing",
+        views=1,
+        ratios=(0.25, 0.5, 0.75),
+        default_ratio=0.25,
+        scaled=("pred_to_gt", "gt_to_pred", "cd_l2"),
+        headline="cd_l2",
+        ignore_zeros=False,
+        source="PF-Net (CVPR 2020) §4; DESIGN.md §3, §5",
+    ),
+    "pcn": Protocol(
+        name="pcn",
+        title="PCN: given partial scan, whole completion vs 16,384 points, CD-L1 ×1000",
+        input="given",
+        prediction="complete",
+        views=1,
+        ratios=(),
+        default_ratio=None,
+        scaled=_POINTR_METRICS,
+        headline="cd_l1",
+        ignore_zeros=True,
+        source="PoinTr datasets/PCNDataset.py, tools/runner.py test(), utils/metrics.py",
+    ),
+    "shapenet55": Protocol(
+        name="shapenet55",
+        title="ShapeNet-55/34: 8 viewpoints, 2,048-point input, whole completion vs 8,192 "
+        "points, CD-L2 ×1000",
+        input="crop",
+        prediction="complete",
+        views=len(SHAPENET_VIEWPOINTS),
+        ratios=(0.25, 0.5, 0.75),
+        default_ratio=0.25,
+        scaled=_POINTR_METRICS,
+        headline="cd_l2",
+        ignore_zeros=True,
+        source="PoinTr tools/runner.py test(), utils/misc.py seprate_point_cloud, utils/metrics.py",
+    ),
+}
+"""The protocols by name."""
+
+_ALIASES = {"shapenet34": "shapenet55", "shapenet-55": "shapenet55", "shapenet-34": "shapenet55"}
+
+
+def get_protocol(name: str) -> Protocol:
+    """The protocol called ``name`` (``shapenet34`` is ``shapenet55``'s other name).
+
+    Raises:
+        ConfigError: No protocol has that name.
+    """
+    key = _ALIASES.get(str(name).lower(), str(name).lower())
+    if key not in PROTOCOLS:
+        raise ConfigError(f"protocol must be one of {', '.join(PROTOCOLS)}, got {name!r}")
+    return PROTOCOLS[key]
+
+
+def shapenet_missing_count(n_points: int, ratio: float) -> int:
+    """Points the ShapeNet-55/34 crop removes: ``int(n_points · ratio)`` (PoinTr truncates).
+
+    Raises:
+        ConfigError: The ratio is not in (0, 1), or removes no point or every point.
+    """
+    if not (isinstance(ratio, (int, float)) and 0.0 < ratio < 1.0):
+        raise ConfigError(f"missing ratio must be in (0, 1), got {ratio!r}")
+    removed = int(n_points * ratio)
+    if not 1 <= removed < n_points:
+        raise ConfigError(f"missing ratio {ratio} removes {removed} of {n_points} points")
+    return removed
+
+
+def shapenet_crop(points: np.ndarray, ratio: float, view: int) -> np.ndarray:
+    """PoinTr's ShapeNet-55/34 test input for one viewpoint.
+
+    The ``int(N·r)`` points nearest ``SHAPENET_VIEWPOINTS[view]`` are removed; the rest, in
+    order of increasing distance to it (PoinTr's ``argsort``; ties here in index order), are
+    reduced to :data:`SHAPENET_INPUT_POINTS` by farthest point sampling from the first one
+    (the nearest kept point; ``furthest_point_sample`` starts at index 0).
+
+    Args:
+        points: ``(N, 3)`` or ``(B, N, 3)`` complete clouds.
+        ratio: Share of the points removed (0.25, 0.5, 0.75 in the benchmark).
+        view: Index into :data:`SHAPENET_VIEWPOINTS`.
+
+    Returns:
+        float32 ``(2048, 3)`` or ``(B, 2048, 3)``; fewer than 2,048 kept points are returned
+        as they are (sorted by distance).
+    """
+    from pfnet.geometry import farthest_point_sample
+
+    if not 0 <= view < len(SHAPENET_VIEWPOINTS):
+        raise ConfigError(f"view must be in [0, {len(SHAPENET_VIEWPOINTS)}), got {view}")
+    clouds = np.asarray(points, dtype=np.float32)
+    single = clouds.ndim == 2
+    if single:
+        clouds = clouds[None]
+    removed = shapenet_missing_count(clouds.shape[1], ratio)
+    centre = SHAPENET_VIEWPOINTS[view]
+    distance = np.sqrt(((clouds - centre) ** 2).sum(axis=2, dtype=np.float32))
+    order = np.argsort(distance, axis=1, kind="stable")[:, removed:]
+    kept = np.take_along_axis(clouds, order[:, :, None], axis=1)
+    if kept.shape[1] >= SHAPENET_INPUT_POINTS:  # PoinTr samples 2,048 of 2,048 too (reorders)
+        index = farthest_point_sample(kept, SHAPENET_INPUT_POINTS, start_index=0)
+        kept = np.take_along_axis(kept, index[:, :, None], axis=1)
+    kept = np.ascontiguousarray(kept, dtype=np.float32)
+    return kept[0] if single else kept

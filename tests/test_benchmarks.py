@@ -1,0 +1,307 @@
+"""The benchmarks of later work (issue 17): PCN and ShapeNet-55/34 layouts through prepare,
+predict and evaluate; PoinTr's metrics and crop against independent computations; KITTI's
+Fidelity and MMD against every pair."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from pfnet.cli import main
+from pfnet.data import load_split, prepare_dataset
+from pfnet.data.benchmarks import load_partials
+from pfnet.errors import ConfigError, DataError
+from pfnet.evaluation import evaluate_benchmark
+from pfnet.metrics import fidelity, minimal_matching_distance, sample_metrics
+from pfnet.protocols import SHAPENET_VIEWPOINTS, get_protocol, shapenet_crop
+
+SH3D = Path("/usr/share/sweethome3d/furniture/BlendSwap-CC-0.sh3f")
+
+
+# ---------------------------------------------------------------- independent references
+
+
+def pointr_reference(pred: np.ndarray, gt: np.ndarray, th: float = 0.01) -> dict[str, float]:
+    """PoinTr's formulas written out with all-pairs distances (float64): CD-L1, CD-L2 with
+    ignore_zeros (points whose x+y+z == 0 left out), F-score on Euclidean distances."""
+
+    def dists(a, b):
+        return np.sqrt(
+            ((a[:, None, :].astype(np.float64) - b[None].astype(np.float64)) ** 2).sum(-1)
+        )
+
+    p = pred[pred.sum(axis=1) != 0]
+    g = gt[gt.sum(axis=1) != 0]
+    d = dists(p, g)
+    d1, d2 = d.min(axis=1), d.min(axis=0)
+    full = dists(pred, gt)
+    precision = float((full.min(axis=1) < th).mean())
+    recall = float((full.min(axis=0) < th).mean())
+    f = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    return {
+        "cd_l1": (d1.mean() + d2.mean()) / 2,
+        "cd_l2": (d1**2).mean() + (d2**2).mean(),
+        "f_score": f,
+    }
+
+
+def naive_fps(points: np.ndarray, n: int) -> np.ndarray:
+    chosen = [0]
+    dist = ((points - points[0]) ** 2).sum(axis=1)
+    for _ in range(n - 1):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(axis=1))
+    return points[chosen]
+
+
+# ---------------------------------------------------------------- trees in the documented layouts
+
+
+def write_pcd(path: Path, points: np.ndarray) -> None:
+    """A binary PCD as Open3D writes PCN's files."""
+    points = np.asarray(points, np.float32)
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\n"
+        f"TYPE F F F\nCOUNT 1 1 1\nWIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {len(points)}\nDATA binary\n"
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(header.encode() + points.tobytes())
+
+
+def real_clouds(count: int, n_points: int) -> list[np.ndarray]:
+    """Surface samples of real SweetHome3D models (procedural shapes without the package)."""
+    from pfnet.data.sampling import sample_surface
+    from pfnet.data.sources import load_item
+
+    rng = np.random.default_rng(0)
+    if SH3D.is_file():
+        from pfnet.data.sources import sweethome3d
+
+        items = sweethome3d.scan(SH3D, strict=False).items[:count]
+    else:  # pragma: no cover
+        from pfnet.data.sources import procedural
+
+        items = procedural.scan(count).items[:count]
+    clouds = []
+    for item in items:
+        mesh = load_item(item, 0)
+        cloud = sample_surface(mesh.vertices, mesh.faces, n_points, rng)
+        cloud = (cloud - cloud.mean(axis=0)) / np.abs(cloud).max() / 2  # PCN-like scale
+        clouds.append(cloud.astype(np.float32))
+    return clouds
+
+
+@pytest.fixture(scope="module")
+def pcn_tree(tmp_path_factory) -> Path:
+    """A PCN tree (PoinTr's DATASET.md): real meshes, 16,384-point complete clouds, partial
+    scans 00..07 in train and 00 in val/test, PCN.json and category.txt."""
+    root = tmp_path_factory.mktemp("pcn") / "PCN"
+    clouds = iter(real_clouds(12, 16384))
+    records = []
+    for taxonomy, name in (("02691156", "airplane"), ("03001627", "chair")):
+        record = {"taxonomy_id": taxonomy, "taxonomy_name": name}
+        for split, n in (("train", 2), ("val", 1), ("test", 3)):
+            record[split] = []
+            for k in range(n):
+                model = f"{taxonomy[-3:]}{split}{k}e2b8f3c1"
+                record[split].append(model)
+                cloud = next(clouds)
+                write_pcd(root / split / "complete" / taxonomy / f"{model}.pcd", cloud)
+                for view in range(8 if split == "train" else 1):
+                    seen = cloud[cloud @ SHAPENET_VIEWPOINTS[view] > 0][: 900 + 50 * k]
+                    write_pcd(root / split / "partial" / taxonomy / model / f"{view:02d}.pcd", seen)
+        records.append(record)
+    (root / "PCN.json").write_text(json.dumps(records, indent=4))
+    (root / "category.txt").write_text("airplane\nchair\n")
+    return root
+
+
+@pytest.fixture(scope="module")
+def shapenet_tree(tmp_path_factory) -> Path:
+    """A ShapeNet55-34 tree: shapenet_pc/<taxonomy>-<model>.npy of 8,192 points (real meshes,
+    not normalised) and the ShapeNet-55 / ShapeNet-34 split lists."""
+    root = tmp_path_factory.mktemp("sn") / "ShapeNet55-34"
+    (root / "shapenet_pc").mkdir(parents=True)
+    lists: dict[str, list[str]] = {"train": [], "test": []}
+    clouds = iter(real_clouds(8, 8192))
+    for taxonomy in ("02691156", "04379243"):
+        for split, n in (("train", 2), ("test", 2)):
+            for k in range(n):
+                file = f"{taxonomy}-{split}{k}a9c0d7e.npy"
+                np.save(root / "shapenet_pc" / file, next(clouds) * 37.0 + 5.0)
+                lists[split].append(file)
+    for folder in ("ShapeNet-55", "ShapeNet-34"):
+        (root / folder).mkdir()
+        for split, files in lists.items():
+            (root / folder / f"{split}.txt").write_text("\n".join(files) + "\n")
+    return root
+
+
+# ---------------------------------------------------------------- metrics and protocols
+
+
+def test_metrics_equal_pointr_formulas_computed_independently():
+    rng = np.random.default_rng(3)
+    pred = rng.normal(size=(700, 3)).astype(np.float32) * 0.05
+    gt = rng.normal(size=(900, 3)).astype(np.float32) * 0.05
+    pred[:5] = [1.0, -1.0, 0.0]  # x + y + z = 0: PoinTr's ignore_zeros drops them
+    got = sample_metrics([pred], [gt], ignore_zeros=True)
+    want = pointr_reference(pred, gt)
+    for key in ("cd_l1", "cd_l2", "f_score"):
+        assert got[key][0] == pytest.approx(want[key], rel=1e-6), key
+    plain = sample_metrics([pred], [gt])
+    assert plain["cd_l2"][0] > got["cd_l2"][0]  # the far zero-sum points count without it
+
+
+def test_crop_equals_an_independent_crop_and_fps():
+    rng = np.random.default_rng(1)
+    cloud = rng.normal(size=(8192, 3)).astype(np.float32)
+    for view, ratio in ((0, 0.25), (5, 0.5), (7, 0.75)):
+        d = np.linalg.norm(cloud.astype(np.float64) - SHAPENET_VIEWPOINTS[view], axis=1)
+        kept = cloud[np.argsort(d, kind="stable")[int(8192 * ratio) :]]
+        np.testing.assert_array_equal(shapenet_crop(cloud, ratio, view), naive_fps(kept, 2048))
+
+
+def test_protocols_are_named_objects():
+    assert get_protocol("shapenet34") is get_protocol("shapenet55")
+    assert get_protocol("pcn").headline == "cd_l1"
+    assert get_protocol("shapenet55").sample_keys("a", "b")[7] == "a/b_view7"
+    with pytest.raises(ConfigError, match="protocol must be one of pfnet, pcn, shapenet55"):
+        get_protocol("kitti-cars")
+
+
+def test_fidelity_and_mmd_equal_every_pair():
+    rng = np.random.default_rng(5)
+    refs = np.stack([rng.normal(size=(300, 3)) * rng.uniform(0.5, 1.5, 3) for _ in range(25)])
+    comps = np.stack([refs[j] * 1.02 + 0.01 for j in (3, 17, 9)]).astype(np.float32)
+    refs = refs.astype(np.float32)
+    dist, index = minimal_matching_distance(comps, refs)
+    for k, comp in enumerate(comps):
+        every = []
+        for ref in refs:
+            d1 = cKDTree(ref).query(comp)[0]
+            d2 = cKDTree(comp).query(ref)[0]
+            every.append((d1**2).mean() + (d2**2).mean())
+        assert index[k] == int(np.argmin(every))
+        assert dist[k] == pytest.approx(min(every), rel=1e-6)
+    partial = comps[:, :100]
+    want = [(cKDTree(c).query(p)[0] ** 2).mean() for p, c in zip(partial, comps, strict=True)]
+    np.testing.assert_allclose(fidelity(partial, comps), want, rtol=1e-6)
+    with pytest.raises(ValueError, match="references must be a"):
+        minimal_matching_distance(comps, refs[0])
+
+
+# ---------------------------------------------------------------- end to end
+
+
+def test_pcn_prepare_predict_evaluate(pcn_tree, tmp_path):
+    data, pred = tmp_path / "data", tmp_path / "pred"
+    assert main(["prepare", str(pcn_tree), "--out", str(data)]) == 0
+    test = load_split(data, "test")
+    assert test.points.shape == (6, 16384, 3) and test.categories == ["airplane", "chair"]
+    original = np.fromfile(pcn_tree / "test/complete/02691156/156test0e2b8f3c1.pcd", np.uint8)
+    assert len(original) > 16384 * 12  # coordinates kept as given (no normalisation)
+    partials = load_partials(data, "test", len(test))
+    assert [len(p) for p in partials] == [900, 950, 1000, 900, 950, 1000]
+    assert main(["predict", "--data", str(data), "--out", str(pred), "--protocol", "pcn"]) == 0
+    completion = np.load(pred / "airplane" / f"{test.name[0]}.npy")
+    np.testing.assert_array_equal(completion[:900], partials[0])  # the scan, then 512 points
+    assert completion.shape == (900 + 512, 3)
+    js = tmp_path / "r.json"
+    assert main(["evaluate", str(pred), "--data", str(data), "--json", str(js)]) == 0
+    report = json.loads(js.read_text())
+    assert report["protocol"] == "pcn" and report["categories"]["chair"]["n"] == 3
+    cloud = np.load(pred / "airplane" / f"{test.name[0]}.npy")  # the first score, again
+    want = pointr_reference(cloud, test.points[0])
+    got = evaluate_benchmark(pred, data, "pcn").per_sample
+    assert got["cd_l1"][0] == pytest.approx(want["cd_l1"], rel=1e-6)
+    assert got["f_score"][0] == pytest.approx(want["f_score"], rel=1e-6)
+    means = [report["categories"][c]["cd_l1"] for c in ("airplane", "chair")]
+    assert report["mean"]["cd_l1"] == pytest.approx(np.mean(means))
+
+
+def test_shapenet55_prepare_predict_evaluate(shapenet_tree, tmp_path, capsys):
+    data, pred = tmp_path / "data", tmp_path / "pred"
+    assert main(["prepare", str(shapenet_tree), "--out", str(data)]) == 0
+    test = load_split(data, "test")
+    assert test.points.shape == (4, 8192, 3)
+    assert np.linalg.norm(test.points, axis=2).max() == pytest.approx(1.0, abs=1e-5)  # pc_norm
+    args = ["--data", str(data), "--out", str(pred), "--protocol", "shapenet55"]
+    assert main(["predict", *args, "--missing-ratio", "0.75"]) == 0
+    files = sorted((pred / "02691156").glob("*.npy"))
+    assert len(files) == 16 and files[0].name.endswith("_view0.npy")
+    first = np.load(files[0])
+    np.testing.assert_array_equal(first[:2048], shapenet_crop(test.points[0], 0.75, 0))
+    capsys.readouterr()
+    js = tmp_path / "r.json"
+    assert main(["evaluate", str(pred), "--data", str(data), "--json", str(js)]) == 0
+    out = capsys.readouterr().out
+    assert "protocol shapenet55, 75% missing, 32 of 32 completions scored" in out
+    report = json.loads(js.read_text())
+    want = pointr_reference(first, test.points[0])
+    got = evaluate_benchmark(pred, data, "shapenet55", missing_ratio=0.75).per_sample
+    assert got["cd_l2"][0] == pytest.approx(want["cd_l2"], rel=1e-6)
+    assert report["categories"]["02691156"]["n"] == 16
+    assert (
+        main(
+            [
+                "prepare",
+                str(shapenet_tree),
+                "--out",
+                str(tmp_path / "d34"),
+                "--format",
+                "shapenet-34",
+            ]
+        )
+        == 0
+    )
+
+
+# ---------------------------------------------------------------- error paths
+
+
+def test_pcn_bad_files_are_named_and_the_rest_prepared(pcn_tree, tmp_path):
+    broken = tmp_path / "PCN"
+    import shutil
+
+    shutil.copytree(pcn_tree, broken)
+    (broken / "test/partial/03001627/627test1e2b8f3c1/00.pcd").unlink()
+    (broken / "test/complete/02691156/156test2e2b8f3c1.pcd").write_text("not a pcd")
+    report = prepare_dataset(broken, tmp_path / "d", progress=False)
+    reasons = dict(report.skipped)
+    assert (
+        "the partial scan 00.pcd is missing"
+        in reasons[str(broken / "test/partial/03001627/627test1e2b8f3c1/00.pcd")]
+    )
+    assert str(broken / "test/complete/02691156/156test2e2b8f3c1.pcd") in reasons
+    assert report.counts["test"] == {"airplane": 2, "chair": 2}
+    (broken / "PCN.json").write_text("{not json")
+    with pytest.raises(DataError, match="PCN.json: cannot read the category file"):
+        prepare_dataset(broken, tmp_path / "d2", progress=False)
+
+
+def test_benchmark_option_errors(pcn_tree, tiny_dataset, tmp_path, capsys):
+    data = tmp_path / "data"
+    prepare_dataset(pcn_tree, data, progress=False)
+    with pytest.raises(ConfigError, match="keeps its own clouds: points, pool and count"):
+        prepare_dataset(pcn_tree, tmp_path / "x", points=2048, progress=False)
+    with pytest.raises(DataError, match="no partial scans; the pcn protocol needs"):
+        load_partials(tiny_dataset, "test", 12)
+    with pytest.raises(ConfigError, match="takes no missing ratio"):
+        evaluate_benchmark(tmp_path, data, "pcn", missing_ratio=0.25)
+    pred = tmp_path / "pred"
+    assert main(["predict", "--data", str(data), "--out", str(pred), "--protocol", "pcn"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(pred), "--data", str(data), "--region", "whole"]) == 1
+    assert "--region applies to the pfnet protocol, not to pcn" in capsys.readouterr().err
+    assert main(["evaluate", str(pred), "--data", str(data), "--protocol", "shapenet55"]) == 1
+    assert "made with the pcn protocol" in capsys.readouterr().err
+    next(iter((pred / "chair").glob("*.npy"))).unlink()
+    assert main(["evaluate", str(pred), "--data", str(data)]) == 2
+    assert "1 sample(s) have no prediction file: chair/" in capsys.readouterr().err
