@@ -194,7 +194,8 @@ def _scoring_protocol(args: argparse.Namespace) -> str:
 
 
 def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
-    """``pfnet evaluate --protocol pcn|shapenet55``: whole completions scored as PoinTr does."""
+    """``pfnet evaluate --protocol pcn|shapenet55|kitti``: whole completions scored as PoinTr
+    does."""
     from pfnet.io import check_report_path
     from pfnet.protocols import get_protocol
     from pfnet.reports import format_benchmark_table, write_csv, write_json
