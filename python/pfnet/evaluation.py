@@ -62,6 +62,8 @@ class Evaluation:
         far: ``<category>/<name>`` of scored predictions with points more than
             :data:`FAR` from the origin, where the data set's clouds lie within radius 1:
             predictions in other coordinates, scored but probably not what was meant.
+        labels: More per-sample text columns, ``{column: (K,) strings}`` (the ``kitti``
+            protocol's nearest reference car).
     """
 
     report: dict
@@ -74,6 +76,7 @@ class Evaluation:
     unmatched: list[str] = field(default_factory=list)
     n_samples: int = 0
     far: list[str] = field(default_factory=list)
+    labels: dict[str, list[str]] = field(default_factory=dict)
 
 
 def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, Path]:
@@ -276,6 +279,8 @@ def evaluate_benchmark(
     chosen = get_protocol(protocol)
     if chosen.prediction != "complete":
         raise ConfigError(f"protocol {chosen.name!r} is scored by evaluate_predictions")
+    if chosen.name == "kitti":
+        raise ConfigError("the kitti protocol is scored by evaluate_kitti (against reference cars)")
     if chosen.ratios and missing_ratio is None:
         missing_ratio = chosen.default_ratio
     if not chosen.ratios and missing_ratio is not None:
@@ -488,4 +493,173 @@ def render_evaluation_gallery(
         missing_ratio=missing_ratio,
         keys=[(evaluation.categories[k], evaluation.names[k]) for k in chosen],
         title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing",
+    )
+
+
+KITTI_METRICS = ("fidelity", "mmd")
+"""The ``kitti`` protocol's per-sample metrics, in table order."""
+
+
+def load_references(
+    root: str | os.PathLike[str], category: str = "car"
+) -> tuple[np.ndarray, list[str]]:
+    """The reference cars of KITTI's MMD: every cloud of ``category`` in every split of a
+    prepared data set (PoinTr uses PCN's cars, train + test + val: ``KITTI_metric.py`` lines
+    13–19), in the data set's coordinates.
+
+    Returns:
+        float32 ``(R, M, 3)`` clouds and their ``<split>/<name>`` labels.
+
+    Raises:
+        DataError: The folder is not a data set, has no cloud of ``category``, or its clouds
+            hold no points (a KITTI data set).
+    """
+    from pfnet.data import SPLITS, load_split
+
+    found, labels = [], []
+    available: set[str] = set()
+    for split in SPLITS:
+        try:
+            clouds = load_split(root, split)
+        except DataError as err:
+            raise DataError(f"references: {err}") from None
+        available.update(clouds.categories)
+        chosen = clouds.category == category
+        if chosen.any():
+            found.append(np.asarray(clouds.points[chosen], dtype=np.float32))
+            labels += [f"{split}/{n}" for n in clouds.name[chosen]]
+    if not found:
+        raise DataError(
+            f"references {root}: no cloud of the category {category!r} (categories: "
+            f"{', '.join(sorted(available)) or 'none'})"
+        )
+    refs = np.concatenate(found)
+    if refs.shape[1] == 0:
+        raise DataError(
+            f"references {root}: its clouds hold no points (a KITTI data set has no complete "
+            "cars); use complete car clouds, e.g. PCN's cars"
+        )
+    return refs, labels
+
+
+def evaluate_kitti(
+    pred_dir: str | os.PathLike[str],
+    data_dir: str | os.PathLike[str],
+    references: str | os.PathLike[str],
+    *,
+    reference_category: str = "car",
+    split: str = "test",
+    workers: int | None = None,
+) -> Evaluation:
+    """Score completions of the KITTI cars by Fidelity and MMD (PoinTr ``KITTI_metric.py``).
+
+    Prediction files are ``PRED/<category>/<name>.<ext>``, each a whole completion in PoinTr's
+    normalised object frame (:func:`pfnet.data.kitti.object_pose`; what ``pfnet predict
+    --protocol kitti`` writes). The input of each car is recomputed from the data set
+    (:func:`pfnet.data.kitti.kitti_input`). As PoinTr's ``ignore_zeros=True`` at batch size
+    1, points whose coordinates sum to exactly 0 are left out of inputs and completions.
+
+    * Fidelity (lines 29–38): ``mean_I d(i, C)²``, input → completion
+      (:func:`pfnet.metrics.fidelity`). A method whose completion contains its input
+      scores 0.
+    * MMD (lines 82–99): ``min_R CD-L2(C, R)`` over the reference cars
+      (:func:`pfnet.metrics.minimal_matching_distance`, exact); the reference cars are
+      taken as they are.
+
+    Both ×1000 per category, overall the unweighted mean of the categories (one: ``car``).
+    Completions of equal size go to the Rust core together; each distinct size builds the
+    reference cars' trees once more.
+
+    Raises:
+        DataError: Missing folders, a data set without KITTI's boxes, unusable references,
+            or no prediction could be scored.
+    """
+    from pfnet.data import load_split
+    from pfnet.data.benchmarks import load_partials
+    from pfnet.data.kitti import kitti_input, load_boxes
+    from pfnet.metrics import fidelity, minimal_matching_distance, zero_sum_mask
+
+    if workers is not None and not 1 <= workers <= MAX_WORKERS:
+        raise ConfigError(f"workers must be in [1, {MAX_WORKERS}], got {workers}")
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise DataError(f"prediction folder {pred_dir} does not exist")
+    cars = load_split(data_dir, split)
+    if len(cars) == 0:
+        raise DataError(f"split {split!r} of {data_dir} has no samples")
+    boxes = load_boxes(data_dir, split, len(cars))
+    partials = load_partials(data_dir, split, len(cars))
+    refs, ref_labels = load_references(references, reference_category)
+    keys = [f"{c}/{n}" for c, n in zip(cars.category, cars.name, strict=True)]
+    present, loaded, missing, unmatched = _read_predictions(pred_dir, keys, workers)
+    inputs, completions, scored, unreadable, reasons = [], [], [], [], []
+    for k, cloud in zip(present, loaded, strict=True):
+        if isinstance(cloud, np.ndarray):
+            cloud = cloud[zero_sum_mask(cloud)]
+            if not len(cloud):
+                cloud = f"{keys[k]}: every point has x + y + z = 0 (PoinTr leaves such points out)"
+        given = kitti_input(partials[k], boxes[k], keys[k])
+        given = given[zero_sum_mask(given)]
+        if not len(given):
+            cloud = f"{keys[k]}: every input point has x + y + z = 0; no Fidelity"
+        if isinstance(cloud, str):
+            unreadable.append(keys[k])
+            reasons.append(cloud)
+            continue
+        inputs.append(given)
+        completions.append(np.ascontiguousarray(cloud, dtype=np.float32))
+        scored.append(k)
+    if not scored:
+        raise DataError(
+            f"no prediction in {pred_dir} could be scored against {split!r} of "
+            f"{data_dir} ({len(missing)} missing, {len(unreadable)} unreadable of "
+            f"{len(keys)} cars; expected files like {pred_dir / keys[0]}.npy)"
+        )
+    fid = fidelity(inputs, completions)
+    mmd = np.zeros(len(completions))
+    nearest = np.zeros(len(completions), np.int64)
+    by_size: dict[int, list[int]] = {}
+    for j, cloud in enumerate(completions):
+        by_size.setdefault(len(cloud), []).append(j)
+    for group in by_size.values():
+        dist, index = minimal_matching_distance(np.stack([completions[j] for j in group]), refs)
+        mmd[group], nearest[group] = dist, index
+    categories = [str(cars.category[k]) for k in scored]
+    per_sample = {"fidelity": np.asarray(fid, np.float64), "mmd": mmd}
+    table: dict[str, dict] = {}
+    for cat in sorted(set(categories)):
+        sel = np.array([c == cat for c in categories])
+        row: dict = {"n": int(sel.sum())}
+        row.update({m: float(per_sample[m][sel].mean()) * SCALE for m in KITTI_METRICS})
+        table[cat] = row
+    report = {
+        "protocol": "kitti",
+        "split": split,
+        "scale": SCALE,
+        "scaled": list(KITTI_METRICS),
+        "headline": "mmd",
+        "missing_ratio": None,
+        "categories": table,
+        "mean": {m: float(np.mean([row[m] for row in table.values()])) for m in KITTI_METRICS},
+        "references": {
+            "path": str(Path(references).resolve()),
+            "category": reference_category,
+            "n": len(refs),
+            "points": int(refs.shape[1]),
+        },
+        "missing": missing,
+        "unreadable": unreadable,
+    }
+    return Evaluation(
+        report=report,
+        categories=categories,
+        names=[keys[k].split("/", 1)[1] for k in scored],
+        per_sample=per_sample,
+        missing=missing,
+        unreadable=unreadable,
+        reasons=reasons,
+        unmatched=unmatched,
+        n_samples=len(keys),
+        far=[keys[k] for k, c in zip(scored, completions, strict=True) if np.abs(c).max() > FAR],
+        labels={"nearest_reference": [ref_labels[i] for i in nearest]},
     )

@@ -18,6 +18,11 @@ output is compared with, and which metrics, in which units. ``pfnet predict --pr
   (``r`` = 0.25 / 0.5 / 0.75, *easy* / *median* / *hard*), the rest, in order of increasing
   distance, are reduced to 2,048 points by farthest point sampling from their first point;
   the whole completion is compared with the 8,192 points. CD-L2 ×1000 is the headline number.
+* ``kitti`` — the KITTI cars of the PCN release (PoinTr, ``KITTI_metric.py``): no ground
+  truth; each car's LiDAR points, pose-normalised from its box
+  (:func:`pfnet.data.kitti.object_pose`, PoinTr's ``NormalizeObjectPose``), are the input;
+  the whole completion, in that normalised frame, is scored by Fidelity (input →
+  completion) and MMD (completion → nearest reference car by CD-L2), both ×1000.
 
 Metrics of ``pcn`` and ``shapenet55`` are PoinTr's (``utils/metrics.py``,
 ``extensions/chamfer_dist/__init__.py``): see :func:`pfnet.metrics.sample_metrics`. As
@@ -146,6 +151,20 @@ PROTOCOLS: dict[str, Protocol] = {
         headline="cd_l2",
         ignore_zeros=True,
         source="PoinTr tools/runner.py test(), utils/misc.py seprate_point_cloud, utils/metrics.py",
+    ),
+    "kitti": Protocol(
+        name="kitti",
+        title="KITTI cars: pose-normalised LiDAR car, whole completion, Fidelity and MMD ×1000",
+        input="given",
+        prediction="complete",
+        views=1,
+        ratios=(),
+        default_ratio=None,
+        scaled=("fidelity", "mmd"),
+        headline="mmd",
+        ignore_zeros=True,
+        source="PoinTr datasets/KITTIDataset.py, datasets/data_transforms.py "
+        "NormalizeObjectPose, KITTI_metric.py",
     ),
 }
 """The protocols by name."""

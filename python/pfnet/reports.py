@@ -58,6 +58,37 @@ def format_benchmark_table(report: dict) -> str:
     return "\n".join(lines)
 
 
+def format_kitti_table(report: dict) -> str:
+    """The ``kitti`` protocol's table (:func:`pfnet.evaluation.evaluate_kitti`): per category
+    Fidelity and MMD ×1000, then the unweighted mean."""
+    header = f"{'category':<16} {'n':>6} {'Fidelity':>9} {'MMD':>9}"
+    lines = [header, "-" * len(header)]
+    for cat, m in sorted(report["categories"].items()):
+        lines.append(f"{cat:<16} {m['n']:>6} {m['fidelity']:>9.3f} {m['mmd']:>9.3f}")
+    lines.append("-" * len(header))
+    total = sum(m["n"] for m in report["categories"].values())
+    mean = report["mean"]
+    lines.append(f"{'mean':<16} {total:>6} {mean['fidelity']:>9.3f} {mean['mmd']:>9.3f}")
+    return "\n".join(lines)
+
+
+def write_kitti_csv(path: Path, evaluation: Evaluation) -> None:
+    """Per-car scores of the ``kitti`` protocol: category, name, Fidelity and MMD ×1000, and
+    the reference car nearest the completion (``<split>/<name>`` in the reference set)."""
+    from pfnet.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(["category", "name", "fidelity", "mmd", "nearest_reference"])
+            ps, nearest = evaluation.per_sample, evaluation.labels["nearest_reference"]
+            for i, (cat, name) in enumerate(
+                zip(evaluation.categories, evaluation.names, strict=True)
+            ):
+                values = [f"{ps[k][i] * SCALE:.6f}" for k in ("fidelity", "mmd")]
+                writer.writerow([cat, name, *values, nearest[i]])
+
+
 def write_csv(path: Path, evaluation: Evaluation) -> None:
     """Per-sample scores: category, name and the metrics (×1000 except the F-score)."""
     from pfnet.io import atomic_path

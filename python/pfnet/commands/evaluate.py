@@ -20,6 +20,7 @@ from pfnet.evaluation import (
     SCALE,
     Evaluation,
     evaluate_benchmark,
+    evaluate_kitti,
     evaluate_predictions,
     recorded_protocol,
     recorded_protocol_name,
@@ -28,7 +29,7 @@ from pfnet.evaluation import (
 from pfnet.rendering import MAX_ROWS
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
-PROTOCOL_NAMES = ("pfnet", "pcn", "shapenet55", "shapenet34")
+PROTOCOL_NAMES = ("pfnet", "pcn", "shapenet55", "shapenet34", "kitti")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +55,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="pfnet: PF-Net's crop, missing region, squared CD ×1000; pcn, shapenet55 "
         "(= shapenet34): whole completions scored as PoinTr does (CD-L1/CD-L2 ×1000, "
-        "F-score@0.01) (default: the one recorded in PRED/predictions.json, else pfnet)",
+        "F-score@0.01); kitti: Fidelity and MMD ×1000 against --references "
+        "(default: the one recorded in PRED/predictions.json, else pfnet)",
+    )
+    parser.add_argument(
+        "--references",
+        type=Path,
+        default=None,
+        metavar="CARS",
+        help="kitti protocol: a prepared data set whose --reference-category clouds, all "
+        "splits, are the reference cars of MMD (PoinTr: PCN's cars)",
+    )
+    parser.add_argument(
+        "--reference-category",
+        default="car",
+        help="kitti protocol: the category of the reference cars (default: car)",
     )
     parser.add_argument(
         "--region",
@@ -100,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
     protocol = _scoring_protocol(args)
     if protocol != "pfnet":
         return _run_benchmark(args, protocol)
+    if args.references is not None:
+        raise ConfigError("--references applies to the kitti protocol, not to pfnet")
     args.region = args.region or "missing"
     if args.pred_is_complete and args.region != "whole":
         raise ConfigError("--pred-is-complete needs --region whole")
@@ -177,7 +194,8 @@ def _scoring_protocol(args: argparse.Namespace) -> str:
 
 
 def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
-    """``pfnet evaluate --protocol pcn|shapenet55``: whole completions scored as PoinTr does."""
+    """``pfnet evaluate --protocol pcn|shapenet55|kitti``: whole completions scored as PoinTr
+    does."""
     from pfnet.io import check_report_path
     from pfnet.protocols import get_protocol
     from pfnet.reports import format_benchmark_table, write_csv, write_json
@@ -190,6 +208,13 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     ):
         if value is not None:
             raise ConfigError(f"{flag} applies to the pfnet protocol, not to {protocol}")
+    if protocol == "kitti" and args.references is None:
+        raise ConfigError(
+            "the kitti protocol needs --references CARS: a prepared data set holding complete "
+            "car clouds (e.g. PCN prepared with --categories car) to measure MMD against"
+        )
+    if protocol != "kitti" and args.references is not None:
+        raise ConfigError(f"--references applies to the kitti protocol, not to {protocol}")
     if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
         raise ConfigError(f"--workers must be in [1, {MAX_WORKERS}], got {args.workers}")
     ratio = args.missing_ratio
@@ -217,9 +242,12 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
                     "drop --missing-ratio, or pass --ignore-recorded-protocol"
                 )
             ratio = made_ratio
+    inputs = [args.data] if args.references is None else [args.data, args.references]
     for flag in ("json", "csv"):
         if getattr(args, flag) is not None:
-            check_report_path(getattr(args, flag), args.pred, [args.data], flag=f"--{flag}")
+            check_report_path(getattr(args, flag), args.pred, inputs, flag=f"--{flag}")
+    if protocol == "kitti":
+        return _run_kitti(args)
     evaluation = evaluate_benchmark(
         args.pred,
         args.data,
@@ -241,6 +269,45 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
         print(f"wrote {args.json}")
     if args.csv is not None:
         write_csv(args.csv, evaluation)
+        print(f"wrote {args.csv}")
+    problems = _report_problems(evaluation)
+    if problems and not args.allow_missing:
+        print(
+            "pfnet evaluate: some samples were not scored (pass --allow-missing to accept)",
+            file=sys.stderr,
+        )
+        return 2
+    return 0
+
+
+def _run_kitti(args: argparse.Namespace) -> int:
+    """``pfnet evaluate --protocol kitti``: Fidelity and MMD of the completions of the cars."""
+    from pfnet.reports import format_kitti_table, write_json, write_kitti_csv
+
+    evaluation = evaluate_kitti(
+        args.pred,
+        args.data,
+        args.references,
+        reference_category=args.reference_category,
+        split=args.split,
+        workers=args.workers,
+    )
+    report = evaluation.report
+    print(
+        f"{args.pred} vs {args.data} [{args.split}]: protocol kitti, "
+        f"{len(evaluation.categories)} of {evaluation.n_samples} completions scored against "
+        f"{report['references']['n']} reference cars of {args.references}"
+    )
+    print(
+        "Fidelity (input → completion) and MMD (completion → nearest reference, CD-L2), "
+        "×1000 (PoinTr's KITTI_metric.py)"
+    )
+    print(format_kitti_table(report))
+    if args.json is not None:
+        write_json(args.json, report)
+        print(f"wrote {args.json}")
+    if args.csv is not None:
+        write_kitti_csv(args.csv, evaluation)
         print(f"wrote {args.csv}")
     problems = _report_problems(evaluation)
     if problems and not args.allow_missing:

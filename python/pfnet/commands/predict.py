@@ -32,11 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", default="test", help="split to predict (default: test)")
     parser.add_argument(
         "--protocol",
-        choices=("pfnet", "pcn", "shapenet55", "shapenet34"),
+        choices=("pfnet", "pcn", "shapenet55", "shapenet34", "kitti"),
         default="pfnet",
         help="pfnet (default): PF-Net's crop, the missing region is written; pcn: the given "
-        "partial scans; shapenet55 (= shapenet34): PoinTr's 8 viewpoints; the last two write "
-        "whole completions for evaluate --protocol",
+        "partial scans; shapenet55 (= shapenet34): PoinTr's 8 viewpoints; kitti: the KITTI "
+        "cars, pose-normalised by their boxes; the last three write whole completions for "
+        "evaluate --protocol",
     )
     parser.add_argument(
         "--missing-ratio",
@@ -116,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_benchmark(args: argparse.Namespace) -> int:
-    """``pfnet predict --protocol pcn|shapenet55``: whole completions of the benchmark's inputs."""
+    """``pfnet predict --protocol pcn|shapenet55|kitti``: whole completions of the benchmark's
+    inputs."""
     if args.gallery is not None:
         raise ConfigError(f"--gallery applies to the pfnet protocol, not to {args.protocol}")
     info = predict_benchmark(
@@ -138,5 +140,6 @@ def _run_benchmark(args: argparse.Namespace) -> int:
         f"{info['protocol']['name']}{shown})"
     )
     name = info["protocol"]["name"]
-    print(f"score it: pfnet evaluate {args.out} --data {args.data} --protocol {name}")
+    more = " --references CARS" if name == "kitti" else ""
+    print(f"score it: pfnet evaluate {args.out} --data {args.data} --protocol {name}{more}")
     return 0

@@ -1,5 +1,5 @@
 """``pfnet prepare``: build a completion dataset from meshes, ShapeNet-Part, SweetHome3D,
-procedural shapes, or the PCN and ShapeNet-55/34 benchmarks."""
+procedural shapes, or the PCN, ShapeNet-55/34 and KITTI benchmarks."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "source",
         metavar="SOURCE",
-        help="a folder (ROOT/<category>/<mesh>, a ShapeNet-Part, PCN or ShapeNet-55/34 tree, "
-        "*.sh3f catalogues), a .sh3f file, or the word 'procedural'",
+        help="a folder (ROOT/<category>/<mesh>, a ShapeNet-Part, PCN, ShapeNet-55/34 or KITTI "
+        "tree, *.sh3f catalogues), a .sh3f file, or the word 'procedural'",
     )
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write")
     parser.add_argument(
@@ -33,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             "shapenet-55",
             "shapenet-34",
             "shapenet-unseen21",
+            "kitti",
         ),
         help="source format (default: auto-detect)",
     )

@@ -30,6 +30,9 @@ complete clouds as usual and does not use the other seven scans.
 
 Each cloud is normalised as PoinTr's ``pc_norm`` does (centroid at the origin, divided by
 the largest distance to it). The category is the taxonomy (synset) id. There is no val split.
+
+**KITTI** (``--format kitti``): the cars of the PCN release (``cars/``, ``bboxes/``,
+``KITTI.json``), test split only, without ground truth; see :mod:`pfnet.data.kitti`.
 """
 
 from __future__ import annotations
@@ -63,7 +66,7 @@ SHAPENET_LISTS = {
     "shapenet-34": "ShapeNet-34",
     "shapenet-unseen21": "ShapeNet-Unseen21",
 }
-BENCHMARK_FORMATS: tuple[str, ...] = ("pcn", *SHAPENET_LISTS)
+BENCHMARK_FORMATS: tuple[str, ...] = ("pcn", *SHAPENET_LISTS, "kitti")
 """The benchmark layouts ``pfnet prepare --format`` reads."""
 
 PROTOCOL_OF = {"pcn": "pcn", **dict.fromkeys(SHAPENET_LISTS, "shapenet55")}
@@ -82,9 +85,13 @@ class _Entry:
 
 
 def detect_benchmark(root: Path) -> str | None:
-    """The benchmark layout of ``root`` (``pcn`` or ``shapenet-55``), or None."""
+    """The benchmark layout of ``root`` (``pcn``, ``shapenet-55``... or ``kitti``), or None."""
+    from pfnet.data.kitti import detect_kitti
+
     if not root.is_dir():
         return None
+    if detect_kitti(root):
+        return "kitti"
     if (root / "PCN.json").is_file() or any(
         (root / split / "complete").is_dir() for split in SPLITS
     ):
@@ -199,7 +206,8 @@ def prepare_benchmark(
     strict: bool = False,
     overwrite: bool = False,
 ):
-    """Write a pfnet data set from a PCN or ShapeNet-55/34 tree (layouts in the module doc).
+    """Write a pfnet data set from a PCN or ShapeNet-55/34 tree (layouts in the module doc),
+    or from the KITTI layout (:func:`pfnet.data.kitti.prepare_kitti`).
 
     Returns:
         A :class:`pfnet.data.prepare.PrepareReport`.
@@ -211,6 +219,12 @@ def prepare_benchmark(
     from pfnet.data.prepare import PrepareReport
     from pfnet.data.sources import unique_names
 
+    if fmt == "kitti":
+        from pfnet.data.kitti import prepare_kitti
+
+        return prepare_kitti(
+            source, out, categories=categories, workers=workers, strict=strict, overwrite=overwrite
+        )
     start = time.perf_counter()
     root = Path(source)
     if not root.is_dir():

@@ -48,6 +48,9 @@ MANIFEST_NAME = "manifest.json"
 # A manifest lists shapes' credits and skipped files: well under a megabyte for 820 models.
 MAX_MANIFEST_BYTES = 16 << 20
 SPLITS: tuple[str, ...] = ("train", "val", "test")
+# What follows a split's name in the files of a data set: the split, and the side files of
+# the benchmarks (pfnet.data.benchmarks, pfnet.data.kitti).
+SIDE_FILE_ENDINGS = (".npz", ".partial.npz", ".boxes.npz")
 
 # A fixed timestamp for every member of the .npz archives: the same arrays give the same bytes.
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
@@ -429,7 +432,11 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> Path:
                 f"{path}: is not a pfnet data set (no readable {MANIFEST_NAME}); overwriting "
                 "only replaces a folder that pfnet prepare wrote"
             ) from None
-        ours = {MANIFEST_NAME, *(f"{split}.npz" for split in SPLITS)}
+        # the splits, and the benchmarks' side files (given partial scans, KITTI's boxes)
+        ours = {
+            MANIFEST_NAME,
+            *(f"{split}{end}" for split in SPLITS for end in SIDE_FILE_ENDINGS),
+        }
         others = sorted(p.name for p in path.iterdir() if p.name not in ours)
         if others:
             raise DataError(
