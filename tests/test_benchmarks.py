@@ -4,12 +4,12 @@ Fidelity and MMD against every pair."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from brute import nearest_distances, needs_runtime
 
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
@@ -176,12 +176,6 @@ def test_protocols_are_named_objects():
         get_protocol("kitti-cars")
 
 
-def nearest_distances(queries: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Euclidean distance from each query to its nearest point, by brute force in float64."""
-    q, p = queries.astype(np.float64), points.astype(np.float64)
-    return np.sqrt(((q[:, None, :] - p[None, :, :]) ** 2).sum(-1).min(1))
-
-
 def test_fidelity_and_mmd_equal_every_pair():
     rng = np.random.default_rng(5)
     refs = np.stack([rng.normal(size=(300, 3)) * rng.uniform(0.5, 1.5, 3) for _ in range(25)])
@@ -204,12 +198,6 @@ def test_fidelity_and_mmd_equal_every_pair():
 
 
 # ---------------------------------------------------------------- end to end
-
-# predict runs the shipped model on PyTorch or, in the light install, ONNX Runtime.
-needs_runtime = pytest.mark.skipif(
-    not any(importlib.util.find_spec(m) for m in ("torch", "onnxruntime")),
-    reason="predict needs PyTorch or ONNX Runtime",
-)
 
 
 @needs_runtime

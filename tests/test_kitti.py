@@ -1,6 +1,6 @@
 """KITTI cars (issue 17): the PCN release's layout through prepare, predict and evaluate, the
-pose normalisation against the pose the cars were placed with, Fidelity and MMD against scipy,
-and the error paths."""
+pose normalisation against the pose the cars were placed with, Fidelity and MMD against a
+brute force, and the error paths."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
+from brute import nearest_distances, needs_runtime
 
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
@@ -182,6 +182,7 @@ def test_object_pose_refuses_boxes_without_length():
 # ---------------------------------------------------------------- end to end
 
 
+@needs_runtime
 def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys):
     root, truth = kitti_tree
     data, pred = tmp_path / "data", tmp_path / "pred"
@@ -225,7 +226,7 @@ def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys
     assert report["protocol"] == "kitti" and report["scale"] == 1000
     assert report["headline"] == "mmd" and report["categories"]["car"]["n"] == 4
 
-    # independently: every pair with scipy, in float64
+    # independently: every pair by brute force, in float64
     ref_clouds = [
         c for split in ("train", "val", "test") for c in load_split(references, split).points
     ]
@@ -235,10 +236,10 @@ def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys
         rows = {r["name"]: r for r in csv.DictReader(fh)}
     for model in sorted(inputs):
         completion = np.load(pred / "car" / f"{model}.npy").astype(np.float64)
-        fid = (cKDTree(completion).query(inputs[model].astype(np.float64))[0] ** 2).mean()
+        fid = (nearest_distances(inputs[model], completion) ** 2).mean()
         every = [
-            (cKDTree(r).query(completion)[0] ** 2).mean()
-            + (cKDTree(completion).query(r)[0] ** 2).mean()
+            (nearest_distances(completion, r) ** 2).mean()
+            + (nearest_distances(r, completion) ** 2).mean()
             for r in np.asarray(ref_clouds, np.float64)
         ]
         fids.append(fid)
@@ -254,7 +255,7 @@ def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys
     np.save(pred / "car" / f"{CARS[0][0]}.npy", np.load(pred / "car" / f"{CARS[0][0]}.npy")[-512:])
     got = evaluate_kitti(pred, data, references)
     completion = np.load(pred / "car" / f"{CARS[0][0]}.npy").astype(np.float64)
-    want = (cKDTree(completion).query(inputs[CARS[0][0]].astype(np.float64))[0] ** 2).mean()
+    want = (nearest_distances(inputs[CARS[0][0]], completion) ** 2).mean()
     assert got.per_sample["fidelity"][0] == pytest.approx(want, rel=1e-5)
     assert want > 0
 
@@ -288,6 +289,7 @@ def test_kitti_bad_files_are_named_and_the_rest_prepared(kitti_tree, tmp_path):
         prepare_dataset(broken, tmp_path / "d3", progress=False)
 
 
+@needs_runtime
 def test_kitti_option_errors(kitti_tree, references, tiny_dataset, tmp_path, capsys):
     root, _ = kitti_tree
     data, pred = tmp_path / "data", tmp_path / "pred"
