@@ -35,8 +35,16 @@ from pathlib import Path
 
 from pfnet.errors import ConfigError, DataError
 from pfnet.study.orchestrate import reproduce, rewrite_report
-from pfnet.study.report import checked_report, publish, publish_readme, read_results
-from pfnet.study.runs import STUDY_MODELS, STUDY_RATIOS, STUDY_SEEDS
+from pfnet.study.record import read_results
+from pfnet.study.report import checked_report, publish, publish_readme, read_readme
+from pfnet.study.runs import (
+    BASE_RATIO,
+    MAX_RATIOS,
+    MAX_SEEDS,
+    STUDY_MODELS,
+    STUDY_RATIOS,
+    STUDY_SEEDS,
+)
 
 HELP = "Re-run the paper's comparisons: five models, three missing ratios, tables and figures."
 
@@ -109,8 +117,14 @@ def run(args: argparse.Namespace) -> int:
     bad = [r for r in args.ratios if not 0.0 < r < 1.0]
     if bad:
         raise ConfigError(f"--ratios must be in (0, 1); got {', '.join(map(str, bad))}")
-    if args.readme is not None and not args.readme.is_file():
-        raise ConfigError(f"--readme {args.readme} does not exist")
+    if len(set(args.ratios) | {BASE_RATIO}) > MAX_RATIOS:
+        raise ConfigError(f"--ratios: at most {MAX_RATIOS} missing ratios, 0.25 included")
+    if len(set(args.seeds)) > MAX_SEEDS:
+        raise ConfigError(f"--seeds: at most {MAX_SEEDS} seeds")
+    if args.readme is not None:
+        if not args.readme.is_file():
+            raise ConfigError(f"--readme {args.readme} does not exist")
+        read_readme(args.readme)  # before a study of hours, not after it
     if not args.report_only:  # the options of a study to run, not of a report to rebuild
         if args.data is None and args.source is not None and not args.source.exists():
             raise ConfigError(f"--source {args.source} does not exist")

@@ -6,6 +6,7 @@
 * :mod:`~pfnet.study.paper` — the paper's published numbers;
 * :mod:`~pfnet.study.figures` — validation curves and the gallery of every model;
 * :mod:`~pfnet.study.report` — the Markdown report, the README section, publishing;
+* :mod:`~pfnet.study.record` — ``results.json`` read back and checked whole;
 * :mod:`~pfnet.study.orchestrate` — a whole study, resumable.
 """
 

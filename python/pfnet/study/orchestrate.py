@@ -53,6 +53,15 @@ def reproduce(
         report = prepare_dataset(source, data_dir, seed=data_seed, progress=None)
         log(report.summary())
     manifest = read_manifest(data_dir)
+    # Each run keeps its best validation epoch and the study draws the validation curves, so
+    # an empty validation split would fail only after the first training (and test: scores).
+    empty = [name for name in ("val", "test") if not manifest["splits"].get(name, {}).get("total")]
+    if empty:
+        raise DataError(
+            f"data set {data_dir} has no shapes in its {' or '.join(empty)} split; the study "
+            "tests each run's best validation epoch on the test split. Prepare it again with "
+            "a larger validation (or test) fraction, or with more shapes per category"
+        )
 
     records = []
     runs = study_runs(models, ratios, seeds)

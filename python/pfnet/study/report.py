@@ -239,23 +239,6 @@ def render_report(results: dict[str, Any], assets: str = "") -> str:
     return "\n".join(lines)
 
 
-def read_results(path: Path) -> dict[str, Any]:
-    """A study's ``results.json``, checked to hold a list of runs.
-
-    Raises:
-        DataError: If it cannot be read or is not a study record.
-    """
-    try:
-        if path.stat().st_size > 64 << 20:  # a study of hundreds of runs is a few MB
-            raise ValueError("larger than 64 MB, not a study record")
-        results = json.loads(path.read_text())
-        if not isinstance(results, dict) or not isinstance(results.get("runs"), list):
-            raise ValueError("not a study record (no list of runs)")
-    except (OSError, ValueError, RecursionError) as err:
-        raise DataError(f"cannot read {path}: {str(err)[:200]}") from None
-    return results
-
-
 def checked_report(results: dict[str, Any], source: Path) -> str:
     """:func:`render_report` of a record read from ``source``, which may be edited or forged.
 
@@ -278,19 +261,53 @@ def publish_readme(readme: Path, results: dict[str, Any], published: Path) -> No
     update_readme(readme, render_report(results, assets))
 
 
-def update_readme(readme: Path, section: str) -> None:
-    """Replace the text between ``README_BEGIN`` and ``README_END`` in ``readme``."""
-    from pfnet.io import atomic_path
+# A README is a few hundred KB at most; the cap keeps a wrong file (a checkpoint, a sparse
+# file) from being read whole.
+MAX_README_BYTES = 16 << 20
 
+
+def read_readme(readme: Path) -> str:
+    """The text of ``readme``, checked to be UTF-8, at most 16 MB, with a results section.
+
+    Raises:
+        ConfigError: If it cannot be read or has no results section.
+        DataError: If it is larger than 16 MB or not UTF-8 text.
+    """
     try:
-        text = readme.read_text(encoding="utf-8")
+        with open(readme, "rb") as file:
+            data = file.read(MAX_README_BYTES + 1)
     except OSError as err:
         raise ConfigError(f"README {readme}: cannot read it: {err.strerror}") from None
+    if len(data) > MAX_README_BYTES:
+        raise DataError(
+            f"README {readme} is larger than {MAX_README_BYTES >> 20} MB; "
+            "is it the README (a Markdown file)?"
+        )
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise DataError(
+            f"README {readme} is not UTF-8 text (byte {err.start}); "
+            "is it the README? Convert it to UTF-8 first"
+        ) from None
     start, end = text.find(README_BEGIN), text.find(README_END)
     if start < 0 or end < start:
         raise ConfigError(
             f"README {readme}: no results section; add the lines\n{README_BEGIN}\n{README_END}"
         )
+    return text
+
+
+def update_readme(readme: Path, section: str) -> None:
+    """Replace the text between ``README_BEGIN`` and ``README_END`` in ``readme``.
+
+    Raises:
+        ConfigError, DataError: As :func:`read_readme`.
+    """
+    from pfnet.io import atomic_path
+
+    text = read_readme(readme)
+    start, end = text.find(README_BEGIN), text.find(README_END)
     head = text[: start + len(README_BEGIN)]
     with atomic_path(readme) as tmp:
         tmp.write_text(head + "\n" + section.rstrip("\n") + "\n" + text[end:], encoding="utf-8")
@@ -298,10 +315,8 @@ def update_readme(readme: Path, section: str) -> None:
 
 def readme_section(readme: Path) -> str:
     """The text between the results markers of ``readme`` (without the markers)."""
-    text = readme.read_text(encoding="utf-8")
+    text = read_readme(readme)
     start, end = text.find(README_BEGIN), text.find(README_END)
-    if start < 0 or end < start:
-        raise ConfigError(f"{readme}: no results section")
     return text[start + len(README_BEGIN) : end].strip("\n")
 
 

@@ -29,6 +29,18 @@ STUDY_RATIOS = (0.25, 0.5, 0.75)
 STUDY_SEEDS = (0, 1, 2)
 
 
+# The largest study pfnet runs, and so the largest results.json it reads back: up to ten
+# times the default seeds and three times the default ratios. With every model that is
+# (5 + 9 - 1) settings × 30 seeds = 390 runs, a record of a few MB.
+MAX_SEEDS = 10 * len(STUDY_SEEDS)
+
+
+MAX_RATIOS = 3 * len(STUDY_RATIOS)
+
+
+MAX_RUNS = (len(STUDY_MODELS) + MAX_RATIOS - 1) * MAX_SEEDS
+
+
 # The schedule of each preset in the study. ``paper`` is the authors' (200 epochs, StepLR 40,
 # α stepping at epochs 30 and 80). ``small`` keeps the authors' 200 epochs and StepLR 40 (the
 # learning rate ends at 1e-3 · 0.2⁴ = 1.6e-6) with α stepping earlier, at 20 and 50. At 120
