@@ -420,6 +420,12 @@ def _record_problem(info: Any) -> str | None:
     name = protocol.get("name", "test")  # "test": PF-Net's protocol, as older records name it
     if not isinstance(name, str):
         return f'"protocol.name" must be a protocol\'s name, got {shown(name)}'
+    from pfnet.protocols import PROTOCOL_NAMES
+
+    if name != "test" and name.lower() not in PROTOCOL_NAMES:
+        return (
+            f'"protocol.name" must be one of test, {", ".join(PROTOCOL_NAMES)}, got {shown(name)}'
+        )
     benchmark = name not in ("test", "pfnet")
     ratio = protocol.get("missing_ratio")
     # A benchmark protocol with given inputs (pcn) records no ratio.
@@ -431,11 +437,12 @@ def _record_problem(info: Any) -> str | None:
     counts = {
         "protocol.n_points": protocol.get("n_points"),
         "model.n_points": model.get("n_points"),
+        "model.n_predicted": model.get("n_predicted"),
     }
     for key, count in counts.items():
         if count is not None and not (is_int(count) and count >= 1):
             return f'"{key}" must be a positive integer, got {shown(count)}'
-    points, trained = counts.values()
+    points, trained = counts["protocol.n_points"], counts["model.n_points"]
     # Benchmark protocols resample their clouds to the model's input, as complete does.
     if not benchmark and None not in (points, trained) and points != trained:
         return (

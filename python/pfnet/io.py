@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import tokenize
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -283,7 +284,16 @@ def read_point_cloud(path: str | os.PathLike[str]) -> np.ndarray:
         raise DataError(f"{file}: cannot read: {err.strerror or err}") from err
     except MemoryError:
         raise DataError(f"{file}: too large to load into memory") from None
-    except (ValueError, IndexError, OverflowError, TypeError, RecursionError) as err:
+    except (
+        ValueError,
+        IndexError,
+        KeyError,
+        OverflowError,
+        TypeError,
+        RecursionError,
+        SyntaxError,
+        tokenize.TokenError,
+    ) as err:
         # The readers' single boundary: whatever hostile bytes make a parser raise is a
         # malformed file, named, so that batch commands skip it and go on.
         raise DataError(f"{file}: malformed {suffix[1:]} file ({err})") from None

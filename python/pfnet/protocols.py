@@ -41,6 +41,7 @@ from pfnet.errors import ConfigError
 
 __all__ = [
     "PROTOCOLS",
+    "PROTOCOL_NAMES",
     "SHAPENET_INPUT_POINTS",
     "SHAPENET_VIEWPOINTS",
     "Protocol",
@@ -171,6 +172,9 @@ PROTOCOLS: dict[str, Protocol] = {
 
 _ALIASES = {"shapenet34": "shapenet55", "shapenet-55": "shapenet55", "shapenet-34": "shapenet55"}
 
+PROTOCOL_NAMES = (*PROTOCOLS, *_ALIASES)
+"""Every name :func:`get_protocol` accepts (the protocols' and their other names)."""
+
 
 def get_protocol(name: str) -> Protocol:
     """The protocol called ``name`` (``shapenet34`` is ``shapenet55``'s other name).
@@ -180,7 +184,7 @@ def get_protocol(name: str) -> Protocol:
     """
     key = _ALIASES.get(str(name).lower(), str(name).lower())
     if key not in PROTOCOLS:
-        raise ConfigError(f"protocol must be one of {', '.join(PROTOCOLS)}, got {name!r}")
+        raise ConfigError(f"protocol must be one of {', '.join(PROTOCOL_NAMES)}, got {name!r}")
     return PROTOCOLS[key]
 
 

@@ -51,6 +51,10 @@ GOOD_RECORD = {
         ({"model": [1]}, '"model" must be an object'),
         ({"model": {"n_points": "512"}}, '"model.n_points" must be a positive integer'),
         ({"model": {"n_points": 600}}, "trained on clouds of 600 points but predicted clouds of"),
+        # the ninth audit: neither the file nor shapenet34 was named; a string count passed
+        ({"protocol": {"name": "zzz"}}, '"protocol.name" must be one of test, pfnet, pcn'),
+        ({"protocol": {"name": "zzz"}}, "shapenet34"),
+        ({"model": {"n_predicted": "128"}}, '"model.n_predicted" must be a positive integer'),
     ],
 )
 def test_prediction_records_of_loose_types_are_refused(

@@ -11,7 +11,11 @@ nothing in proportion to the file, what would make trimesh's cost run away:
 - a PLY's declared element counts match its body: an ASCII one has one line a row and at
   most :data:`MAX_EXTRA_LINES` more, a binary one at least the bytes its rows need;
 - a binary STL's triangle count matches its size (otherwise it must be ASCII STL);
-- a glTF's external buffers are regular files counted towards the size limit.
+- a glTF's external buffers are regular files counted towards the size limit;
+- a glTF's scene graph has at most :data:`MAX_GLTF_NODES` nodes, nested at most
+  :data:`MAX_GLTF_DEPTH` deep without cycles, and instances its meshes (one copy for every
+  node using one, as trimesh flattens it) to at most :data:`MAX_GLTF_INSTANCED` vertices and
+  indices.
 
 A file at the limits costs trimesh at most about 1 GB and 13 s (an ASCII PLY of two million
 rows; an OBJ of as many lines 0.5 GB and 7 s), per file and per ``prepare`` worker. The
@@ -34,7 +38,15 @@ from pfnet.formats import read_header
 from pfnet.formats.lines import MAX_LINE_BYTES
 from pfnet.formats.ply import parse_header
 
-__all__ = ["MAX_EXTRA_LINES", "MAX_MESH_BYTES", "MAX_MESH_LINES", "check_mesh_file"]
+__all__ = [
+    "MAX_EXTRA_LINES",
+    "MAX_GLTF_DEPTH",
+    "MAX_GLTF_INSTANCED",
+    "MAX_GLTF_NODES",
+    "MAX_MESH_BYTES",
+    "MAX_MESH_LINES",
+    "check_mesh_file",
+]
 
 MAX_MESH_BYTES = 64 << 20
 """Bytes of a mesh file (a glTF with its external buffers)."""
@@ -44,6 +56,16 @@ MAX_MESH_LINES = 2_000_000
 
 MAX_EXTRA_LINES = 1000
 """Lines an ASCII PLY may have after its declared rows (trimesh parses every one)."""
+
+MAX_GLTF_NODES = 10_000
+"""Nodes of a glTF scene graph."""
+
+MAX_GLTF_DEPTH = 64
+"""Levels of nested glTF nodes."""
+
+MAX_GLTF_INSTANCED = 20_000_000
+"""Vertices and indices of a glTF scene once trimesh has copied each mesh for every node
+using it (its accessors' declared ``count``)."""
 
 _CHUNK = 1 << 20
 _TEXT_SUFFIXES = (".obj", ".off")
@@ -190,3 +212,116 @@ def _check_gltf(fh, file: Path, size: int, *, binary: bool) -> None:
                 f"{file}: with its buffers {total} bytes or more, above the "
                 f"{MAX_MESH_BYTES} accepted for a mesh"
             )
+    if isinstance(document, dict):
+        _check_scene_graph(document, file)
+
+
+def _check_scene_graph(document: dict, file: Path) -> None:
+    """Bound a glTF scene graph as trimesh will flatten it: nodes, depth and instanced size.
+
+    trimesh concatenates one copy of a mesh for every node path that reaches it, so a 1.9 MB
+    GLB of one 20,000-triangle mesh used by 20,000 nodes took 65 s and 5.6 GB, and a 50,000-deep
+    chain of nodes did not finish in 90 s. The instanced size is summed over the scene graph
+    (from every scene's roots) by a walk that visits each node once, memoising each subtree's
+    size, so a graph whose paths multiply costs no more to check than its nodes and edges.
+    """
+    nodes = document.get("nodes", [])
+    nodes = nodes if isinstance(nodes, list) else []
+    if len(nodes) > MAX_GLTF_NODES:
+        raise DataError(
+            f"{file}: glTF with {len(nodes)} nodes; pfnet reads at most {MAX_GLTF_NODES}"
+        )
+    mesh_size = [_gltf_mesh_size(document, mesh) for mesh in _list(document, "meshes")]
+    children: list[list[int]] = []
+    own: list[int] = []
+    for index, node in enumerate(nodes):
+        node = node if isinstance(node, dict) else {}
+        kids = node.get("children", [])
+        kids = kids if isinstance(kids, list) else []
+        for kid in kids:
+            if not _is_index(kid, len(nodes)):
+                raise DataError(
+                    f"{file}: glTF node {index} has a child {str(kid)[:20]!r} out of range"
+                )
+        children.append(kids)
+        mesh = node.get("mesh")
+        own.append(mesh_size[mesh] if _is_index(mesh, len(mesh_size)) else 0)
+    roots: list[int] = []
+    for scene in _list(document, "scenes"):
+        scene_nodes = scene.get("nodes") if isinstance(scene, dict) else None
+        if isinstance(scene_nodes, list):
+            roots += [n for n in scene_nodes if _is_index(n, len(nodes))]
+    if not roots:  # no scene: every node that is nobody's child
+        children_of = {kid for kids in children for kid in kids}
+        roots = [n for n in range(len(nodes)) if n not in children_of]
+    # an iterative post-order walk: size[n] (the instanced size of n's subtree) and depth[n]
+    # (the nodes on its longest path down) once each of n's children has both
+    size: list[int | None] = [None] * len(nodes)
+    depth = [0] * len(nodes)
+    on_path = [False] * len(nodes)
+    for root in roots:
+        if size[root] is not None:
+            continue
+        stack = [(root, 0)]
+        on_path[root] = True
+        while stack:
+            node, next_child = stack[-1]
+            if next_child < len(children[node]):
+                stack[-1] = (node, next_child + 1)
+                kid = children[node][next_child]
+                if on_path[kid]:
+                    raise DataError(f"{file}: glTF node {kid} is its own ancestor (a cycle)")
+                if size[kid] is None:
+                    if len(stack) >= MAX_GLTF_DEPTH:
+                        raise DataError(
+                            f"{file}: glTF nodes nested more than {MAX_GLTF_DEPTH} deep; pfnet "
+                            f"reads at most {MAX_GLTF_DEPTH} levels"
+                        )
+                    on_path[kid] = True
+                    stack.append((kid, 0))
+                continue
+            stack.pop()
+            on_path[node] = False
+            kids = children[node]
+            depth[node] = 1 + max((depth[k] for k in kids), default=0)
+            if depth[node] > MAX_GLTF_DEPTH:  # reached through children already walked
+                raise DataError(
+                    f"{file}: glTF nodes nested more than {MAX_GLTF_DEPTH} deep; pfnet reads "
+                    f"at most {MAX_GLTF_DEPTH} levels"
+                )
+            size[node] = min(own[node] + sum(size[k] for k in kids), MAX_GLTF_INSTANCED + 1)
+    total = sum(size[root] for root in roots)
+    if total > MAX_GLTF_INSTANCED:
+        raise DataError(
+            f"{file}: glTF scene instances its meshes to more than {MAX_GLTF_INSTANCED:,} "
+            "vertices and indices (one copy for every node using a mesh); pfnet reads at most "
+            f"{MAX_GLTF_INSTANCED:,}"
+        )
+
+
+def _list(document: dict, key: str) -> list:
+    value = document.get(key, [])
+    return value if isinstance(value, list) else []
+
+
+def _is_index(value, length: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < length
+
+
+def _gltf_mesh_size(document: dict, mesh) -> int:
+    """The vertices and indices a glTF mesh declares: its primitives' accessor counts."""
+    accessors = _list(document, "accessors")
+    primitives = mesh.get("primitives", []) if isinstance(mesh, dict) else []
+    total = 0
+    for primitive in primitives if isinstance(primitives, list) else []:
+        if not isinstance(primitive, dict):
+            continue
+        attributes = primitive.get("attributes")
+        used = [attributes.get("POSITION")] if isinstance(attributes, dict) else []
+        used.append(primitive.get("indices"))
+        for index in used:
+            if _is_index(index, len(accessors)) and isinstance(accessors[index], dict):
+                count = accessors[index].get("count")
+                if isinstance(count, int) and not isinstance(count, bool) and count > 0:
+                    total += count
+    return total

@@ -8,7 +8,13 @@ import numpy as np
 
 from pfnet import _core
 from pfnet.errors import DataError, GeometryError
-from pfnet.formats import check_point_count, float32_columns, map_rest, read_header
+from pfnet.formats import (
+    check_body_span,
+    check_point_count,
+    float32_columns,
+    map_rest,
+    read_header,
+)
 from pfnet.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
 
 # Values of one point (the sum of COUNT): descriptors such as SHOT (352 values) fit, and an
@@ -76,13 +82,14 @@ def _read_pcd_body(file: Path, fh, header: list[str], body_line: int) -> np.ndar
     elif mode not in ("binary", "binary_compressed"):
         raise DataError(f"{file}: unsupported PCD DATA mode {mode!r}")
     elif mode == "binary":
-        body = map_rest(fh)
         dtype = np.dtype(
             [
                 (f"f{i}", dt, (c,) if c > 1 else ())
                 for i, (dt, c) in enumerate(zip(dtypes, counts_i, strict=True))
             ]
         )
+        check_body_span(file, dtype.itemsize * n_points, f"{n_points} PCD points")
+        body = map_rest(fh)
         if len(body) < dtype.itemsize * n_points:
             raise DataError(
                 f"{file}: truncated PCD data: {n_points} points need "

@@ -9,7 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import check_point_count, float32_columns, map_rest, read_header
+from pfnet.formats import (
+    check_body_span,
+    check_point_count,
+    float32_columns,
+    map_rest,
+    read_header,
+)
 from pfnet.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
 
 # Rows of PLY elements with list properties have variable sizes and are walked one by one in
@@ -178,6 +184,7 @@ def _read_ply_binary(file, body, elements, vertex_index: int, endian: str) -> np
         if all(p[2] is None for p in props):
             dtype = np.dtype([(p[0], endian + p[1]) for p in props])
             size = dtype.itemsize * count
+            check_body_span(file, offset + size, f"the PLY rows up to the end of element {name!r}")
             if offset + size > len(body):
                 raise DataError(
                     f"{file}: truncated PLY data: element {name!r} needs {size} bytes, "
@@ -200,12 +207,14 @@ def _read_ply_binary(file, body, elements, vertex_index: int, endian: str) -> np
                 "vertex element first)"
             )
         least = sum(np.dtype(p[2] if p[2] is not None else p[1]).itemsize for p in props)
+        check_body_span(file, offset + count * least, f"the PLY rows of element {name!r}")
         if count * least > len(body) - offset:
             raise DataError(
                 f"{file}: truncated PLY data: element {name!r} declares {count} rows of at "
                 f"least {least} bytes, {max(len(body) - offset, 0)} bytes left"
             )
         offset, starts = _walk_rows(file, body, name, count, layout, offset, record=is_vertex)
+        check_body_span(file, offset, f"the PLY rows up to the end of element {name!r}")
         if is_vertex:
             return _gather_columns(body, layout, starts, ("x", "y", "z"))
     raise DataError(f"{file}: PLY file has no vertex element")  # unreachable: checked above
