@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pfnet.data.format import SPLITS, CloudSet, write_dataset
+from pfnet.data.format import SPLITS, CloudSet, load_side_file, write_dataset
 from pfnet.errors import DataError
 
 __all__ = [
@@ -338,25 +338,16 @@ def load_partials(root: str | os.PathLike[str], split: str, n_shapes: int) -> li
             f"{path}: no partial scans; the pcn protocol needs a data set prepared from the "
             "PCN layout"
         )
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            if set(data.files) != {"points", "offsets"}:
-                raise DataError(f"{path}: expected the arrays points and offsets")
-            offsets = data["offsets"]
-            if offsets.dtype != np.int64 or offsets.shape != (n_shapes + 1,):
-                raise DataError(
-                    f"{path}: offsets must be int64 ({n_shapes + 1},), got "
-                    f"{offsets.dtype} {offsets.shape}"
-                )
-            if offsets[0] != 0 or np.any(np.diff(offsets) < 1):
-                raise DataError(f"{path}: offsets must start at 0 and increase")
-            if offsets[-1] > n_shapes * MAX_PARTIAL_POINTS:
-                raise DataError(f"{path}: claims {offsets[-1]} partial points")
-            points = data["points"]
-    except DataError:
-        raise
-    except (OSError, ValueError) as err:
-        raise DataError(f"{path}: cannot read the partial scans: {err}") from None
-    if points.dtype != np.float32 or points.shape != (int(offsets[-1]), 3):
+    arrays = load_side_file(
+        path,
+        {"points": (np.float32, (None, 3)), "offsets": (np.int64, (n_shapes + 1,))},
+        "partial scans",
+    )
+    points, offsets = arrays["points"], arrays["offsets"]
+    if offsets[0] != 0 or np.any(np.diff(offsets) < 1):
+        raise DataError(f"{path}: offsets must start at 0 and increase")
+    if offsets[-1] > n_shapes * MAX_PARTIAL_POINTS:
+        raise DataError(f"{path}: claims {offsets[-1]} partial points")
+    if len(points) != int(offsets[-1]):
         raise DataError(f"{path}: points must be float32 ({offsets[-1]}, 3), got {points.shape}")
     return [points[offsets[i] : offsets[i + 1]] for i in range(n_shapes)]

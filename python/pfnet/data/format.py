@@ -334,9 +334,6 @@ def _check_members(path: Path, rows: int | None, points: int | None) -> None:
     against :data:`MAX_POINTS_COMPRESSION`. Every member must hold the same number of
     shapes (the manifest's, when it records one), so the names cannot outgrow the points.
     """
-    from pfnet.formats.npy import check_npy_header
-
-    archive_size = path.stat().st_size
     shapes: dict[str, tuple[int, ...]] = {}
     needed = 0
     with zipfile.ZipFile(path) as archive:
@@ -346,28 +343,12 @@ def _check_members(path: Path, rows: int | None, points: int | None) -> None:
                     f"{path}: unexpected member {info.filename[:80]!r} (a split holds "
                     f"{', '.join(sorted(MEMBERS))})"
                 )
-            # The directory's sizes are data too: bound them by the archive's real size
-            # (deflate expands at most about 1032 times).
-            if info.compress_size > archive_size:
-                raise DataError(f"{path}: member {info.filename} is larger than the archive")
             name = f"{path}: member {info.filename}"
             coordinates = info.filename in ("points.npy", "extra.npy")
-            if info.compress_type == zipfile.ZIP_STORED:
-                ratio = 1
-            else:
-                ratio = MAX_POINTS_COMPRESSION if coordinates else 1032
-            available = min(info.file_size, info.compress_size * ratio)
-            if coordinates and info.file_size > info.compress_size * ratio + 4096:
-                raise DataError(
-                    f"{name} claims to expand {info.file_size / max(info.compress_size, 1):.0f} "
-                    f"times; point coordinates do not compress beyond {MAX_POINTS_COMPRESSION} "
-                    "(a decompression bomb?)"
-                )
-            with archive.open(info) as member:
-                # names are at most 200 characters: a forged width of 10^8 made five names
-                # take 3 GB before they were refused
-                limit = None if coordinates else MAX_NAME_CHARS
-                shape, dtype = check_npy_header(name, member, available, max_chars=limit)
+            # names are at most 200 characters: a forged width of 10^8 made five names
+            # take 3 GB before they were refused
+            limit = None if coordinates else MAX_NAME_CHARS
+            shape, dtype = _member_header(path, archive, info, coordinates, limit)
             shapes[info.filename] = shape
             needed += int(np.prod(shape, dtype=object)) * dtype.itemsize
             # ... and against the manifest, before anything is unpacked (a deflated 8 MB
@@ -388,6 +369,84 @@ def _check_members(path: Path, rows: int | None, points: int | None) -> None:
             f"{path}: loading the split needs {needed / 1e6:,.1f} MB of memory; "
             f"{free / 1e6:,.1f} MB are available"
         )
+
+
+def _member_header(
+    path: Path,
+    archive: zipfile.ZipFile,
+    info: zipfile.ZipInfo,
+    coordinates: bool,
+    max_chars: int | None,
+) -> tuple[tuple[int, ...], np.dtype]:
+    """The declared shape and dtype of one ``.npy`` member, checked against the bytes the
+    member can hold (its stored size, and :data:`MAX_POINTS_COMPRESSION` for coordinates)."""
+    from pfnet.formats.npy import check_npy_header
+
+    # The directory's sizes are data too: bound them by the archive's real size
+    # (deflate expands at most about 1032 times).
+    if info.compress_size > path.stat().st_size:
+        raise DataError(f"{path}: member {info.filename[:80]!r} is larger than the archive")
+    name = f"{path}: member {info.filename[:80]}"
+    if info.compress_type == zipfile.ZIP_STORED:
+        ratio = 1
+    else:
+        ratio = MAX_POINTS_COMPRESSION if coordinates else 1032
+    available = min(info.file_size, info.compress_size * ratio)
+    if coordinates and info.file_size > info.compress_size * ratio + 4096:
+        raise DataError(
+            f"{name} claims to expand {info.file_size / max(info.compress_size, 1):.0f} "
+            f"times; point coordinates do not compress beyond {MAX_POINTS_COMPRESSION} "
+            "(a decompression bomb?)"
+        )
+    with archive.open(info) as member:
+        return check_npy_header(name, member, available, max_chars=max_chars)
+
+
+def load_side_file(
+    path: Path, expected: Mapping[str, tuple[type, tuple[int | None, ...]]], what: str
+) -> dict[str, np.ndarray]:
+    """Load a benchmark's side file (``<split>.partial.npz``, ``test.boxes.npz``) with the
+    checks of :func:`load_split`: every member's header is read and compared with
+    ``expected`` (``{array: (dtype, shape)}``, ``None`` for a length the file decides) and
+    with the bytes it can hold before anything is unpacked.
+
+    Raises:
+        DataError: Naming ``path`` and the problem (``what`` says what the file holds).
+    """
+    try:
+        needed = 0
+        with zipfile.ZipFile(path) as archive:
+            infos = archive.infolist()
+            if sorted(i.filename for i in infos) != sorted(f"{key}.npy" for key in expected):
+                raise DataError(f"{path}: expected the arrays {' and '.join(expected)}")
+            for info in infos:
+                key = info.filename.removesuffix(".npy")
+                dtype, wanted = expected[key]
+                coordinates = np.dtype(dtype).kind == "f"
+                shape, found = _member_header(path, archive, info, coordinates, None)
+                if (
+                    found != np.dtype(dtype)
+                    or len(shape) != len(wanted)
+                    or any(w is not None and w != s for w, s in zip(wanted, shape, strict=True))
+                ):
+                    spelled = "(" + ", ".join("N" if w is None else str(w) for w in wanted)
+                    spelled += ",)" if len(wanted) == 1 else ")"
+                    raise DataError(
+                        f"{path}: {key} must be {np.dtype(dtype)} {spelled}, got {found} {shape}"
+                    )
+                needed += int(np.prod(shape, dtype=object)) * found.itemsize
+        free = available_memory()
+        if free is not None and needed > free:
+            raise DataError(
+                f"{path}: loading the {what} needs {needed / 1e6:,.1f} MB of memory; "
+                f"{free / 1e6:,.1f} MB are available"
+            )
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in expected}
+    except DataError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, MemoryError) as err:
+        raise DataError(f"{path}: cannot read the {what}: {err or type(err).__name__}") from None
 
 
 def available_memory() -> int | None:

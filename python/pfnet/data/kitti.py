@@ -331,17 +331,6 @@ def load_boxes(root: str | os.PathLike[str], split: str, n_cars: int) -> np.ndar
             f"{path}: no boxes; the kitti protocol needs a data set prepared from the KITTI "
             "layout (cars/, bboxes/, KITTI.json)"
         )
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            if set(data.files) != {"boxes"}:
-                raise DataError(f"{path}: expected the array boxes")
-            boxes = data["boxes"]
-    except DataError:
-        raise
-    except (OSError, ValueError) as err:
-        raise DataError(f"{path}: cannot read the boxes: {err}") from None
-    if boxes.dtype != np.float32 or boxes.shape != (n_cars, 8, 3):
-        raise DataError(
-            f"{path}: boxes must be float32 ({n_cars}, 8, 3), got {boxes.dtype} {boxes.shape}"
-        )
-    return boxes
+    from pfnet.data.format import load_side_file
+
+    return load_side_file(path, {"boxes": (np.float32, (n_cars, 8, 3))}, "boxes")["boxes"]

