@@ -8,6 +8,7 @@ took 31 s) and an implausible name in an index is skipped and named, escaped and
 from __future__ import annotations
 
 import io
+import json
 import time
 import zipfile
 from pathlib import Path
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pfnet.data.benchmarks import load_partials
+from pfnet.data.benchmarks import MAX_INDEX_BYTES, load_partials, prepare_benchmark
 from pfnet.data.kitti import load_boxes
 from pfnet.data.sources import unique_names
 from pfnet.errors import DataError
@@ -128,3 +129,71 @@ def test_unique_names_is_linear_in_shapes_wanting_one_name():
         "c": "m-3",
         "d": "m-4",
     }
+
+
+def _shapenet_tree(root: Path, lines: list[str]) -> Path:
+    rng = np.random.default_rng(0)
+    (root / "shapenet_pc").mkdir(parents=True)
+    for stem in ("02690-mod1", "02690-mod2"):
+        np.save(root / "shapenet_pc" / f"{stem}.npy", rng.normal(size=(8192, 3)).astype("f4"))
+    (root / "ShapeNet-55").mkdir()
+    (root / "ShapeNet-55" / "train.txt").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_index_files_are_bounded_before_they_are_read(tmp_path):
+    root = _shapenet_tree(tmp_path / "sn", ["02690-mod1.npy"])
+    with open(root / "ShapeNet-55" / "train.txt", "r+b") as fh:
+        fh.truncate(2 << 30)  # sparse: 2 GiB of NULs after the line
+    with pytest.raises(DataError, match=r"train.txt: larger than 16 MB; not a split list"):
+        prepare_benchmark(root, tmp_path / "out", "shapenet-55")
+    pcn = tmp_path / "pcn"
+    (pcn / "test" / "complete").mkdir(parents=True)
+    (pcn / "PCN.json").write_bytes(b"[]")
+    with open(pcn / "PCN.json", "r+b") as fh:
+        fh.truncate(MAX_INDEX_BYTES + 1)
+    with pytest.raises(DataError, match=r"PCN.json: larger than 16 MB; not a category file"):
+        prepare_benchmark(pcn, tmp_path / "out", "pcn")
+
+
+def test_repeated_entries_are_read_once_and_named(tmp_path):
+    lines = ["02690-mod1.npy", *["02690-mod2.npy"] * 20_000]
+    root = _shapenet_tree(tmp_path / "sn", lines)
+    report = prepare_benchmark(root, tmp_path / "out", "shapenet-55")
+    assert report.counts["train"] == {"02690": 2}
+    assert any(
+        path.endswith("02690-mod2.npy") and "listed 20000 times in ShapeNet-55/train.txt" in why
+        for path, why in report.skipped
+    )
+
+
+def test_implausible_names_are_skipped_escaped_and_cut(tmp_path):
+    lines = ["02690-mod1.npy", "02690-" + "m" * 300 + ".npy", "\x1b[31mRED\x1b[0m-evil.npy"]
+    root = _shapenet_tree(tmp_path / "sn", lines)
+    report = prepare_benchmark(root, tmp_path / "out", "shapenet-55")
+    assert report.counts["train"] == {"02690": 1}
+    text = report.summary()
+    assert "\x1b" not in text and "\\x1b[31mRED" in text
+    long = [path for path, _ in report.skipped if "mmm" in path]
+    assert len(long) == 1 and len(long[0]) < len(str(root)) + 150 and long[0].endswith("...")
+    # PCN.json: a model name over 255 bytes no longer aborts the run
+    pcn = tmp_path / "pcn"
+    points = np.random.default_rng(1).normal(size=(16384, 3)).astype(np.float32)
+    _write_pcd(pcn / "test" / "complete" / "t" / "m.pcd", points)
+    _write_pcd(pcn / "test" / "partial" / "t" / "m" / "00.pcd", points[:100])
+    record = {"taxonomy_id": "t", "taxonomy_name": "c", "test": ["m", "m" * 300]}
+    (pcn / "PCN.json").write_text(json.dumps([record]))
+    report = prepare_benchmark(pcn, tmp_path / "out-pcn", "pcn")
+    assert report.counts["test"] == {"c": 1}
+    [(where, why)] = report.skipped
+    assert where.endswith("m" * 100 + "...") and "longer than 200" in why
+
+
+def _write_pcd(path: Path, points: np.ndarray) -> None:
+    header = (
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
+        "DATA binary\n"
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(header.encode() + points.tobytes())

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -47,7 +48,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pfnet.data.format import SPLITS, CloudSet, load_side_file, write_dataset
+from pfnet.data.format import (
+    SPLITS,
+    CloudSet,
+    load_side_file,
+    unsafe_component,
+    write_dataset,
+)
 from pfnet.errors import DataError
 
 __all__ = [
@@ -73,6 +80,8 @@ PROTOCOL_OF = {"pcn": "pcn", **dict.fromkeys(SHAPENET_LISTS, "shapenet55")}
 PARTIAL_SUFFIX = ".partial.npz"
 # A partial scan of PCN has a few hundred to a few thousand points.
 MAX_PARTIAL_POINTS = 1 << 20
+# PCN.json is about 1 MB and a ShapeNet-55 list under 2 MB; 2 GiB sparse ones took 4 GB.
+MAX_INDEX_BYTES = 16 << 20
 
 
 @dataclass(frozen=True)
@@ -82,6 +91,55 @@ class _Entry:
     model: str
     complete: Path
     partial: Path | None
+
+
+def read_index(path: Path, what: str) -> str:
+    """The text of an index file (PCN.json, KITTI.json, a ShapeNet split list), refused
+    beyond :data:`MAX_INDEX_BYTES` before it is read whole."""
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_INDEX_BYTES + 1)
+    except OSError as err:
+        raise DataError(f"{path}: cannot read the {what}: {err.strerror or err}") from None
+    if len(data) > MAX_INDEX_BYTES:
+        raise DataError(f"{path}: larger than {MAX_INDEX_BYTES >> 20} MB; not a {what}")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: cannot read the {what}: not UTF-8 text") from None
+
+
+def shown(text: str) -> str:
+    """An untrusted name for messages: control characters escaped, cut to 100 characters."""
+    return ascii(text[:100])[1:-1] + ("..." if len(text) > 100 else "")
+
+
+def bad_entry(index: Path, *parts: str) -> tuple[str, str] | None:
+    """The ``(where, why)`` to skip an index entry whose parts cannot be file names (too
+    long, ``/``, control characters...), decided before the file system is touched."""
+    for part in parts:
+        why = unsafe_component(part)
+        if why is not None:
+            return f"{index}: entry {shown(part)}", f"the name {why}"
+    return None
+
+
+def file_id(path: Path) -> tuple[int, int] | None:
+    """``(device, inode)`` of a regular file, or None (missing, or a name the system
+    refuses, such as one over 255 bytes)."""
+    try:
+        status = path.stat()
+    except (OSError, ValueError):
+        return None
+    return (status.st_dev, status.st_ino) if stat.S_ISREG(status.st_mode) else None
+
+
+def repeated(repeats: Counter, first: dict, index: str) -> list[tuple[str, str]]:
+    """One skipped line for each file an index lists more than once (read once)."""
+    return [
+        (first[key][0], f"listed {n + 1} times in {index}; read once, as {first[key][1]}")
+        for key, n in repeats.items()
+    ]
 
 
 def detect_benchmark(root: Path) -> str | None:
@@ -108,7 +166,7 @@ def _pcn_entries(root: Path) -> tuple[list[_Entry], list[tuple[str, str]]]:
     listed: list[tuple[str, str, str, str]] = []  # split, taxonomy, name, model
     if index.is_file():
         try:
-            records = json.loads(index.read_text(encoding="utf-8"))
+            records = json.loads(read_index(index, "category file"))
             for record in records:
                 taxonomy, name = str(record["taxonomy_id"]), str(record["taxonomy_name"])
                 for split in SPLITS:
@@ -129,16 +187,26 @@ def _pcn_entries(root: Path) -> tuple[list[_Entry], list[tuple[str, str]]]:
                     for f in sorted(taxonomy.glob("*.pcd"))
                 ]
     entries, skipped = [], []
+    first: dict[tuple, tuple[str, str]] = {}
+    repeats: Counter = Counter()
     for split, taxonomy, name, model in listed:
+        bad = bad_entry(index, taxonomy, name, model)
+        if bad is not None:
+            skipped.append(bad)
+            continue
         complete = root / split / "complete" / taxonomy / f"{model}.pcd"
         partial = root / split / "partial" / taxonomy / model / "00.pcd"
-        if not complete.is_file():
+        ident = file_id(complete)
+        if ident is None:
             skipped.append((str(complete), "listed in PCN.json but missing"))
-        elif not partial.is_file():
+        elif (split, ident) in first:  # one model listed twice, or under many categories
+            repeats[(split, ident)] += 1
+        elif file_id(partial) is None:
             skipped.append((str(partial), "the partial scan 00.pcd is missing"))
         else:
+            first[(split, ident)] = (str(complete), f"{split}/{name}/{model}")
             entries.append(_Entry(split, name, model, complete, partial))
-    return entries, skipped
+    return entries, skipped + repeated(repeats, first, "PCN.json")
 
 
 def _shapenet_entries(root: Path, fmt: str) -> tuple[list[_Entry], list[tuple[str, str]]]:
@@ -153,23 +221,31 @@ def _shapenet_entries(root: Path, fmt: str) -> tuple[list[_Entry], list[tuple[st
         if not path.is_file():
             continue
         found = True
-        try:
-            lines = path.read_text(encoding="utf-8").split()
-        except (OSError, UnicodeDecodeError) as err:
-            raise DataError(f"{path}: cannot read the split list: {err}") from None
+        lines = read_index(path, "split list").split()
+        first: dict[tuple, tuple[str, str]] = {}
+        repeats: Counter = Counter()
         for line in lines:
             stem = line.removesuffix(".npy")
             taxonomy, _, model = stem.partition("-")
+            bad = bad_entry(path, line)
+            if bad is not None:
+                skipped.append(bad)
+                continue
             if not taxonomy or not model:
-                skipped.append((f"{path}: {line[:80]}", "not '<taxonomy>-<model>.npy'"))
+                skipped.append((f"{path}: {shown(line)}", "not '<taxonomy>-<model>.npy'"))
                 continue
             file = clouds / f"{stem}.npy"
-            if not file.is_file():
+            ident = file_id(file)
+            if ident is None:
                 skipped.append(
                     (str(file), f"listed in {SHAPENET_LISTS[fmt]}/{split}.txt but missing")
                 )
-                continue
-            entries.append(_Entry(split, taxonomy, model, file, None))
+            elif ident in first:  # a repeated line, or a hard link
+                repeats[ident] += 1
+            else:
+                first[ident] = (str(file), f"{split}/{taxonomy}/{model}")
+                entries.append(_Entry(split, taxonomy, model, file, None))
+        skipped += repeated(repeats, first, f"{SHAPENET_LISTS[fmt]}/{split}.txt")
     if not found:
         raise DataError(f"{lists}: no train.txt or test.txt split list")
     return entries, skipped

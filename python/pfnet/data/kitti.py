@@ -145,11 +145,13 @@ class _Car:
 
 
 def _kitti_entries(root: Path) -> tuple[list[_Car], list[tuple[str, str]]]:
+    from pfnet.data.benchmarks import bad_entry, file_id, read_index, repeated
+
     index = root / "KITTI.json"
     listed: list[tuple[str, str]] = []  # category, model
     if index.is_file():
         try:
-            records = json.loads(index.read_text(encoding="utf-8"))
+            records = json.loads(read_index(index, "category file"))
             for record in records:
                 name = str(record.get("taxonomy_name", record["taxonomy_id"])).lower()
                 listed += [(name, str(m)) for m in record.get("test", [])]
@@ -161,15 +163,25 @@ def _kitti_entries(root: Path) -> tuple[list[_Car], list[tuple[str, str]]]:
     elif (root / "cars").is_dir():
         listed = [("car", f.stem) for f in sorted((root / "cars").glob("*.pcd"))]
     entries, skipped = [], []
+    first: dict[tuple, tuple[str, str]] = {}
+    repeats: Counter = Counter()
     for category, model in listed:
+        bad = bad_entry(index, category, model)
+        if bad is not None:
+            skipped.append(bad)
+            continue
         cloud, box = root / "cars" / f"{model}.pcd", root / "bboxes" / f"{model}.txt"
-        if not cloud.is_file():
+        ident = file_id(cloud)
+        if ident is None:
             skipped.append((str(cloud), "listed in KITTI.json but missing"))
-        elif not box.is_file():
+        elif ident in first:  # one car listed twice, or under many categories
+            repeats[ident] += 1
+        elif file_id(box) is None:
             skipped.append((str(box), f"the box of {cloud.name} is missing"))
         else:
+            first[ident] = (str(cloud), f"{category}/{model}")
             entries.append(_Car(category, model, cloud, box))
-    return entries, skipped
+    return entries, skipped + repeated(repeats, first, "KITTI.json")
 
 
 def _read_car(car: _Car) -> tuple[np.ndarray | None, np.ndarray | None, str, str]:
