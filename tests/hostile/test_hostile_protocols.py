@@ -50,3 +50,33 @@ def test_evaluate_shapenet55_refuses_a_ratio_it_does_not_define(tmp_path, ratio,
         assert "--missing-ratio of the shapenet55 protocol is one of 0.25, 0.5, 0.75" in err
     else:
         assert f"--missing-ratio must be in (0, 1), got {float(ratio)}" in err
+
+
+def test_prepare_lists_at_most_a_thousand_skipped_files(tmp_path, capsys):
+    import numpy as np
+
+    from pfnet.data.format import MAX_SKIPPED_LISTED, read_manifest
+
+    root = tmp_path / "ShapeNet55-34"
+    (root / "shapenet_pc").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    files = []
+    for k in range(4):
+        name = f"02691156-m{k}.npy"
+        np.save(root / "shapenet_pc" / name, rng.normal(size=(8192, 3)).astype(np.float32))
+        files.append(name)
+    missing = [f"02691156-missing{i}{'x' * 200}.npy" for i in range(3000)]
+    (root / "ShapeNet-55").mkdir()
+    (root / "ShapeNet-55" / "train.txt").write_text("\n".join(files[:2] + missing) + "\n")
+    (root / "ShapeNet-55" / "test.txt").write_text("\n".join(files[2:]) + "\n")
+    out = tmp_path / "data"
+    assert main(["prepare", str(root), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "skipped 3000 files:" in printed and "… and 2980 more" in printed
+    assert len(printed.splitlines()) < 100
+    manifest = read_manifest(out)
+    assert len(manifest["skipped"]) == MAX_SKIPPED_LISTED
+    assert manifest["skipped_not_listed"] == 3000 - MAX_SKIPPED_LISTED
+    assert all(len(s["path"]) <= 300 for s in manifest["skipped"])
+    assert (out / "manifest.json").stat().st_size < 1 << 20
+    assert main(["prepare", str(root), "--out", str(out), "--overwrite"]) == 0

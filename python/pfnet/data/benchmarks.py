@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pfnet.data.format import SPLITS, CloudSet, write_dataset
+from pfnet.data.format import SPLITS, CloudSet, skipped_entries, write_dataset
 from pfnet.errors import DataError
 
 __all__ = [
@@ -313,7 +313,7 @@ def prepare_benchmark(
             }
         ],
         "dropped": {},
-        "skipped": [{"path": path, "reason": reason} for path, reason in skipped],
+        **skipped_entries(skipped),
     }
     out_path = write_dataset(out, cloud_sets, manifest, overwrite=overwrite, side_files=partials)
     return PrepareReport(
