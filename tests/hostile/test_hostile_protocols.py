@@ -80,3 +80,28 @@ def test_prepare_lists_at_most_a_thousand_skipped_files(tmp_path, capsys):
     assert all(len(s["path"]) <= 300 for s in manifest["skipped"])
     assert (out / "manifest.json").stat().st_size < 1 << 20
     assert main(["prepare", str(root), "--out", str(out), "--overwrite"]) == 0
+
+
+@pytest.mark.parametrize("protocol", ["shapenet55", "pcn", "kitti"])
+def test_a_benchmark_protocol_refuses_a_data_set_it_does_not_define(
+    tiny_dataset, tmp_path, protocol, capsys
+):
+    from pfnet.evaluation import evaluate_benchmark
+    from pfnet.protocols import check_protocol_data, get_protocol
+
+    want = f"the {protocol} protocol needs a data set prepared from its benchmark, but"
+    with pytest.raises(DataError, match=want) as err:
+        check_protocol_data(get_protocol(protocol), tiny_dataset)
+    assert "is a procedural data set of 512 points a cloud" in str(err.value)
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    if protocol != "kitti":
+        with pytest.raises(DataError, match=want):
+            evaluate_benchmark(pred, tiny_dataset, protocol)
+    checkpoint = tmp_path / "model.pt"
+    checkpoint.write_bytes(b"not read before the data set is checked")
+    args = ["--data", str(tiny_dataset), "--protocol", protocol]
+    out = tmp_path / "o"
+    assert main(["predict", "--checkpoint", str(checkpoint), "--out", str(out), *args]) == 1
+    assert want in capsys.readouterr().err
+    assert not out.exists() or not any(out.iterdir())
