@@ -105,3 +105,9 @@ def test_a_benchmark_protocol_refuses_a_data_set_it_does_not_define(
     assert main(["predict", "--checkpoint", str(checkpoint), "--out", str(out), *args]) == 1
     assert want in capsys.readouterr().err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_predict_refuses_a_data_set_as_its_out_folder(tiny_dataset, tmp_path, capsys):
+    args = ["predict", "--checkpoint", str(tmp_path / "m.pt"), "--data", str(tmp_path)]
+    assert main([*args, "--out", str(tiny_dataset)]) == 1
+    assert f"--out {tiny_dataset} is a prepared data set" in capsys.readouterr().err

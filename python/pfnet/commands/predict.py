@@ -70,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the predictions")
+    if (args.out / "manifest.json").exists():  # never mix predictions into a data set
+        raise ConfigError(f"--out {args.out} is a prepared data set; name another folder")
     if args.protocol != "pfnet":
         return _run_benchmark(args)
     if args.gallery is not None:  # before predicting: never over the data or the checkpoint
