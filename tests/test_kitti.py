@@ -314,7 +314,7 @@ def test_kitti_option_errors(kitti_tree, references, tiny_dataset, tmp_path, cap
     assert "1 sample(s) have no prediction file: car/frame_7_car_0" in capsys.readouterr().err
     other = ["predict", "--data", str(tiny_dataset), "--out", str(tmp_path / "p2")]
     assert main([*other, "--protocol", "kitti"]) == 1
-    assert "no boxes; the kitti protocol needs a data set prepared from the KITTI" in (
+    assert "the kitti protocol needs a data set prepared from its benchmark" in (
         capsys.readouterr().err
     )
     assert main([*other, "--protocol", "kitti", "--missing-ratio", "0.5"]) == 1

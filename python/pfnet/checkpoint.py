@@ -50,8 +50,7 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # torch raises many types for corrupt or unsafe files
-        first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
-        raise DataError(f"checkpoint {path} cannot be read: {first}") from None
+        raise DataError(_unreadable(path, err)) from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise DataError(f"{path} is not a pfnet checkpoint")
     if state.get("version") != VERSION:
@@ -63,6 +62,28 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
         if not isinstance(state.get(key), kind):
             raise DataError(f"checkpoint {path} has no {key!r} table: it is damaged or foreign")
     return state
+
+
+def _unreadable(path: Path, err: Exception) -> str:
+    """One line for a file ``torch.load(weights_only=True)`` refused.
+
+    PyTorch's own text for a weights-only refusal advises re-running with
+    ``weights_only=False``, which executes the file's code: it is never relayed.
+    """
+    if path.suffix.lower() == ".onnx":
+        return (
+            f"checkpoint {path} cannot be read: it is an ONNX model; "
+            "a pfnet checkpoint (.pt) is needed"
+        )
+    first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+    if "weights" in first.lower() or "unpickl" in first.lower() or "pickle" in first.lower():
+        detail = "pfnet loads only tensors and builtins and never unpickles code"
+    else:
+        detail = first[:200]
+    return (
+        f"checkpoint {path} cannot be read: not a pfnet checkpoint, "
+        f"or not one that can be read safely ({detail})"
+    )
 
 
 def _check_stored(path: Path) -> None:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
+from pfnet.protocols import check_protocol_data, get_protocol
 
 PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".pcd", ".xyz", ".pts", ".txt")
 """Suffixes a prediction file may have, in the order they are looked for."""
@@ -294,6 +295,7 @@ def evaluate_benchmark(
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():
         raise DataError(f"prediction folder {pred_dir} does not exist")
+    check_protocol_data(chosen, data_dir)
     clouds = load_split(data_dir, split)
     points = np.asarray(clouds.points)
     keys, owner = [], []
@@ -591,6 +593,7 @@ def evaluate_kitti(
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():
         raise DataError(f"prediction folder {pred_dir} does not exist")
+    check_protocol_data(get_protocol("kitti"), data_dir)
     cars = load_split(data_dir, split)
     if len(cars) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
+from pfnet.protocols import check_protocol_data, get_protocol
 
 # A prediction is in the frame of its partial cloud normalised to the unit ball, where the true
 # missing region lies within radius 1 and a working model's points stay within a few radii.
@@ -300,6 +301,7 @@ def predict_benchmark(
         raise ConfigError(
             f"prediction folder {out_dir} is a file; name a folder for the predictions"
         )
+    check_protocol_data(chosen, data_dir)
     clouds = load_split(data_dir, split)
     if len(clouds) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")
@@ -425,6 +427,7 @@ def predict_kitti(
         raise ConfigError(
             f"prediction folder {out_dir} is a file; name a folder for the predictions"
         )
+    check_protocol_data(get_protocol("kitti"), data_dir)
     cars = load_split(data_dir, split)
     if len(cars) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")

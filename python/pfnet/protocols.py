@@ -33,11 +33,12 @@ before the F-score).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
-from pfnet.errors import ConfigError
+from pfnet.errors import ConfigError, DataError
 
 __all__ = [
     "PROTOCOLS",
@@ -45,6 +46,7 @@ __all__ = [
     "SHAPENET_INPUT_POINTS",
     "SHAPENET_VIEWPOINTS",
     "Protocol",
+    "check_protocol_data",
     "get_protocol",
     "shapenet_crop",
     "shapenet_missing_count",
@@ -65,6 +67,9 @@ SHAPENET_VIEWPOINTS = np.array(
 )
 """PoinTr's 8 test viewpoints, in its order (``tools/runner.py``, ``choice``); used as
 points, not normalised."""
+
+SHAPENET_POINTS = 8192
+"""Points of each ShapeNet-55/34 cloud (PoinTr's ``shapenet_pc/*.npy``)."""
 
 SHAPENET_INPUT_POINTS = 2048
 """Points of the ShapeNet-55/34 input after the crop (PoinTr: ``misc.fps(partial, 2048)``)."""
@@ -237,3 +242,39 @@ def shapenet_crop(points: np.ndarray, ratio: float, view: int) -> np.ndarray:
         kept = np.take_along_axis(kept, index[:, :, None], axis=1)
     kept = np.ascontiguousarray(kept, dtype=np.float32)
     return kept[0] if single else kept
+
+
+def check_protocol_data(protocol: Protocol, data_dir: str | os.PathLike[str]) -> None:
+    """Refuse a data set that a benchmark protocol does not define.
+
+    A benchmark's number means something only on that benchmark's data: ``pcn`` on a data set
+    prepared from PCN, ``shapenet55`` on one prepared from ShapeNet-55/34 (8,192 points a
+    cloud), ``kitti`` on KITTI's cars. ``pfnet`` crops any data set.
+
+    Raises:
+        DataError: The manifest records another benchmark, or none, or (``shapenet55``) clouds
+            of another size.
+    """
+    from pfnet.data.format import read_manifest
+
+    if protocol.name == "pfnet":
+        return
+    manifest = read_manifest(data_dir)
+    benchmark = manifest.get("benchmark")
+    made = benchmark.get("protocol") if isinstance(benchmark, dict) else None
+    source = manifest.get("source")
+    kind = source.get("format") if isinstance(source, dict) else None
+    points = manifest.get("points")
+    shown = f"{made or kind or 'pfnet'} data set"
+    if isinstance(points, int) and not isinstance(points, bool):
+        shown += f" of {points:,} points a cloud"
+    if made != protocol.name:
+        raise DataError(
+            f"the {protocol.name} protocol needs a data set prepared from its benchmark, "
+            f"but {data_dir} is a {shown}"
+        )
+    if protocol.name == "shapenet55" and points != SHAPENET_POINTS:
+        raise DataError(
+            f"the shapenet55 protocol needs clouds of {SHAPENET_POINTS:,} points, "
+            f"but {data_dir} is a {shown}"
+        )

@@ -26,6 +26,7 @@ from pfnet.evaluation import (
     recorded_protocol_name,
     render_evaluation_gallery,
 )
+from pfnet.protocols import Protocol
 from pfnet.rendering import MAX_ROWS
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
@@ -220,6 +221,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     ratio = args.missing_ratio
     if not chosen.ratios and ratio is not None:
         raise ConfigError(f"--missing-ratio does not apply to the {protocol} protocol")
+    _check_benchmark_ratio(chosen, ratio)
     try:
         recorded = recorded_protocol(args.pred)
     except DataError as err:
@@ -236,7 +238,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
                 f"{made_split}, or --ignore-recorded-protocol"
             )
         if chosen.ratios:
-            if ratio is not None and abs(ratio - made_ratio) > 1e-9:
+            if ratio is not None and not abs(ratio - made_ratio) <= 1e-9:
                 raise ConfigError(
                     f"{args.pred} was predicted with {made_ratio:g} missing, not {ratio:g}; "
                     "drop --missing-ratio, or pass --ignore-recorded-protocol"
@@ -393,3 +395,16 @@ def _report_problems(evaluation: Evaluation, limit: int = 20) -> bool:
     if len(evaluation.reasons) > limit:
         print(f"unreadable: and {len(evaluation.reasons) - limit} more", file=sys.stderr)
     return bool(evaluation.missing or evaluation.unreadable)
+
+
+def _check_benchmark_ratio(chosen: Protocol, ratio: float | None) -> None:
+    """Refuse a ``--missing-ratio`` that is not finite, not in (0, 1) or not the protocol's."""
+    if ratio is None:
+        return
+    if not 0.0 < ratio < 1.0:  # also false for NaN
+        raise ConfigError(f"--missing-ratio must be in (0, 1), got {ratio}")
+    if chosen.ratios and not any(abs(ratio - r) <= 1e-9 for r in chosen.ratios):
+        listed = ", ".join(f"{r:g}" for r in chosen.ratios)
+        raise ConfigError(
+            f"--missing-ratio of the {chosen.name} protocol is one of {listed}, got {ratio:g}"
+        )

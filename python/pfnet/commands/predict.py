@@ -18,6 +18,7 @@ from pathlib import Path
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
 from pfnet.inference import predict_benchmark, predict_split
+from pfnet.protocols import Protocol, get_protocol
 from pfnet.rendering import MAX_ROWS
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 from pfnet.shipped import CHECKPOINT_HELP
@@ -69,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the predictions")
+    if (args.out / "manifest.json").exists():  # never mix predictions into a data set
+        raise ConfigError(f"--out {args.out} is a prepared data set; name another folder")
     if args.protocol != "pfnet":
         return _run_benchmark(args)
     if args.gallery is not None:  # before predicting: never over the data or the checkpoint
@@ -121,6 +124,7 @@ def _run_benchmark(args: argparse.Namespace) -> int:
     inputs."""
     if args.gallery is not None:
         raise ConfigError(f"--gallery applies to the pfnet protocol, not to {args.protocol}")
+    _check_benchmark_ratio(get_protocol(args.protocol), args.missing_ratio)
     info = predict_benchmark(
         args.checkpoint,
         args.data,
@@ -143,3 +147,16 @@ def _run_benchmark(args: argparse.Namespace) -> int:
     more = " --references CARS" if name == "kitti" else ""
     print(f"score it: pfnet evaluate {args.out} --data {args.data} --protocol {name}{more}")
     return 0
+
+
+def _check_benchmark_ratio(chosen: Protocol, ratio: float | None) -> None:
+    """Refuse a ``--missing-ratio`` that is not finite, not in (0, 1) or not the protocol's."""
+    if ratio is None:
+        return
+    if not 0.0 < ratio < 1.0:  # also false for NaN
+        raise ConfigError(f"--missing-ratio must be in (0, 1), got {ratio}")
+    if chosen.ratios and not any(abs(ratio - r) <= 1e-9 for r in chosen.ratios):
+        listed = ", ".join(f"{r:g}" for r in chosen.ratios)
+        raise ConfigError(
+            f"--missing-ratio of the {chosen.name} protocol is one of {listed}, got {ratio:g}"
+        )

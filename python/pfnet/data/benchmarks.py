@@ -52,6 +52,7 @@ from pfnet.data.format import (
     SPLITS,
     CloudSet,
     load_side_file,
+    skipped_entries,
     unsafe_component,
     write_dataset,
 )
@@ -389,7 +390,7 @@ def prepare_benchmark(
             }
         ],
         "dropped": {},
-        "skipped": [{"path": path, "reason": reason} for path, reason in skipped],
+        **skipped_entries(skipped),
     }
     out_path = write_dataset(out, cloud_sets, manifest, overwrite=overwrite, side_files=partials)
     return PrepareReport(

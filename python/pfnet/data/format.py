@@ -38,6 +38,7 @@ __all__ = [
     "check_output",
     "load_split",
     "read_manifest",
+    "skipped_entries",
     "split_categories",
     "write_dataset",
 ]
@@ -47,6 +48,10 @@ FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 # A manifest lists shapes' credits and skipped files: well under a megabyte for 820 models.
 MAX_MANIFEST_BYTES = 16 << 20
+# Skipped files a manifest names (a partial PCN download skips thousands): the rest are
+# counted, so that a manifest stays far below MAX_MANIFEST_BYTES.
+MAX_SKIPPED_LISTED = 1000
+_MAX_SKIPPED_CHARS = 300
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 # What follows a split's name in the files of a data set: the split, and the side files of
 # the benchmarks (pfnet.data.benchmarks, pfnet.data.kitti).
@@ -54,6 +59,20 @@ SIDE_FILE_ENDINGS = (".npz", ".partial.npz", ".boxes.npz")
 
 # A fixed timestamp for every member of the .npz archives: the same arrays give the same bytes.
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def skipped_entries(skipped: list[tuple[str, str]]) -> dict:
+    """The manifest's ``skipped`` list: the first :data:`MAX_SKIPPED_LISTED` ``(path,
+    reason)`` pairs, each cut to 300 characters, and ``skipped_not_listed``, the count of the
+    rest, when there are more."""
+    listed = [
+        {"path": path[:_MAX_SKIPPED_CHARS], "reason": reason[:_MAX_SKIPPED_CHARS]}
+        for path, reason in skipped[:MAX_SKIPPED_LISTED]
+    ]
+    entries: dict = {"skipped": listed}
+    if len(skipped) > MAX_SKIPPED_LISTED:
+        entries["skipped_not_listed"] = len(skipped) - MAX_SKIPPED_LISTED
+    return entries
 
 
 def unsafe_component(text: str) -> str | None:

@@ -229,7 +229,7 @@ def prepare_kitti(
     """
     from pfnet import __version__
     from pfnet.data.benchmarks import PARTIAL_SUFFIX
-    from pfnet.data.format import SPLITS, CloudSet, write_dataset
+    from pfnet.data.format import SPLITS, CloudSet, skipped_entries, write_dataset
     from pfnet.data.prepare import PrepareReport
     from pfnet.data.sources import unique_names
 
@@ -317,7 +317,7 @@ def prepare_kitti(
             }
         ],
         "dropped": {},
-        "skipped": [{"path": path, "reason": reason} for path, reason in skipped],
+        **skipped_entries(skipped),
     }
     out_path = write_dataset(out, splits, manifest, overwrite=overwrite, side_files=side_files)
     return PrepareReport(

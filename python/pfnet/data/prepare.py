@@ -25,6 +25,7 @@ from pfnet.data.format import (
     SPLITS,
     CloudSet,
     check_output,
+    skipped_entries,
     write_dataset,
 )
 from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
@@ -40,6 +41,7 @@ MIN_POINTS = 16
 MAX_POINTS = 1 << 16  # the most points a model takes (pfnet.models.config.MAX_POINTS)
 # Procedural shapes per category: 10^9 grew past 3 GB before a shape was made.
 MAX_COUNT = 100_000
+SKIPPED_SHOWN = 20  # skipped files the summary names; the manifest keeps more
 MAX_POOL = 1 << 20  # points per shape; 12 MiB a shape in float32
 DEFAULT_PROCEDURAL_COUNT = 100
 # Below this many shapes per worker a process pool costs more than it saves.
@@ -95,7 +97,10 @@ class PrepareReport:
                 lines.append(f"dropped {count} shapes: {reason.replace('_', ' ')}{hint}")
         if self.skipped:
             lines.append(f"skipped {len(self.skipped)} files:")
-            lines += [f"  {path}: {reason}" for path, reason in self.skipped]
+            shown = self.skipped[:SKIPPED_SHOWN]
+            lines += [f"  {path[:300]}: {reason[:300]}" for path, reason in shown]
+            if len(self.skipped) > len(shown):
+                lines.append(f"  … and {len(self.skipped) - len(shown)} more")
         return "\n".join(lines)
 
 
@@ -515,5 +520,5 @@ def _manifest(
         },
         "licenses": scan.licenses,
         "dropped": {k: v for k, v in scan.dropped.items() if v},
-        "skipped": [{"path": path, "reason": reason} for path, reason in skipped],
+        **skipped_entries(skipped),
     }
