@@ -70,7 +70,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--missing-ratio must be in (0, 1), got {args.missing_ratio}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the predictions")
-    if (args.out / "manifest.json").exists():  # never mix predictions into a data set
+    # Never mix predictions into a data set (--out equal to --data gets the shared check's
+    # message, which says why: outputs apart from the inputs).
+    if (args.out / "manifest.json").exists() and args.out.resolve() != args.data.resolve():
         raise ConfigError(f"--out {args.out} is a prepared data set; name another folder")
     if args.protocol != "pfnet":
         return _run_benchmark(args)
