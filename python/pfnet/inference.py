@@ -68,6 +68,35 @@ def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.nda
     return detail.astype(np.float32, copy=False)  # after the bound: float64 1e300 would warn
 
 
+def open_prediction_folder(
+    out: Path, categories: list[str], split: str, protocol: dict[str, Any]
+) -> None:
+    """Make ``out`` and its category folders, with a ``predictions.json`` that says the run is
+    not complete (``evaluate`` refuses it until the last file is written).
+
+    Raises:
+        DataError: A category folder is a link out of ``out``.
+    """
+    from pfnet.io import atomic_path
+
+    for category in categories:
+        folder = out / category
+        # a folder that is a symbolic link (or resolves elsewhere) would take the
+        # predictions outside out: into the data set, over a checkpoint
+        if folder.is_symlink() or (
+            folder.exists() and not folder.resolve().is_relative_to(out.resolve())
+        ):
+            raise DataError(
+                f"{folder} is a link out of the prediction folder {out}; remove it first"
+            )
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"complete": False, "split": split, "protocol": protocol}
+    with atomic_path(out / "predictions.json") as tmp:
+        tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
+    for category in categories:
+        (out / category).mkdir(exist_ok=True)
+
+
 def predict_missing(
     model: Any, partial: np.ndarray, batch_size: int, device: str, *, source: Any = "in use"
 ) -> np.ndarray:
@@ -181,22 +210,7 @@ def predict_split(
     categories = sorted(set(map(str, clouds.category)))
     if "predictions.json" in categories:  # its folder would stand where the record goes
         raise DataError(f"{data_dir}: a category is named predictions.json")
-    for category in categories:
-        folder = out / category
-        # a folder that is a symbolic link (or resolves elsewhere) would take the
-        # predictions outside out_dir: into the data set, over a checkpoint
-        if folder.is_symlink() or (
-            folder.exists() and not folder.resolve().is_relative_to(out.resolve())
-        ):
-            raise DataError(
-                f"{folder} is a link out of the prediction folder {out}; remove it first"
-            )
-    out.mkdir(parents=True, exist_ok=True)
-    record = {"complete": False, "split": split, "protocol": {"missing_ratio": ratio}}
-    with atomic_path(out / "predictions.json") as tmp:  # until the last file is written,
-        tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")  # evaluate refuses it
-    for category in categories:
-        (out / category).mkdir(exist_ok=True)
+    open_prediction_folder(out, categories, split, {"missing_ratio": ratio})
     for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
         save_npy(out / str(cat) / f"{name}.npy", cloud)
     info = {
@@ -314,20 +328,7 @@ def predict_benchmark(
     model, config, device = loaded.model, loaded.config, loaded.device
     n_input = int(model.n_points) - int(model.n_missing)
     categories = sorted(set(map(str, clouds.category)))
-    for category in categories:
-        folder = out / category
-        if folder.is_symlink() or (
-            folder.exists() and not folder.resolve().is_relative_to(out.resolve())
-        ):
-            raise DataError(
-                f"{folder} is a link out of the prediction folder {out}; remove it first"
-            )
-    out.mkdir(parents=True, exist_ok=True)
-    record = {"complete": False, "split": split, "protocol": {"name": chosen.name}}
-    with atomic_path(out / "predictions.json") as tmp:
-        tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
-    for category in categories:
-        (out / category).mkdir(exist_ok=True)
+    open_prediction_folder(out, categories, split, {"name": chosen.name})
     n_predicted = 0
     for start in range(0, len(clouds), chunk):
         stop = min(start + chunk, len(clouds))
@@ -439,20 +440,7 @@ def predict_kitti(
     model, config, device = loaded.model, loaded.config, loaded.device
     n_input = int(model.n_points) - int(model.n_missing)
     categories = sorted(set(map(str, cars.category)))
-    for category in categories:
-        folder = out / category
-        if folder.is_symlink() or (
-            folder.exists() and not folder.resolve().is_relative_to(out.resolve())
-        ):
-            raise DataError(
-                f"{folder} is a link out of the prediction folder {out}; remove it first"
-            )
-    out.mkdir(parents=True, exist_ok=True)
-    record = {"complete": False, "split": split, "protocol": {"name": "kitti"}}
-    with atomic_path(out / "predictions.json") as tmp:
-        tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
-    for category in categories:
-        (out / category).mkdir(exist_ok=True)
+    open_prediction_folder(out, categories, split, {"name": "kitti"})
     n_predicted = 0
     for start in range(0, len(cars), chunk):
         stop = min(start + chunk, len(cars))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError, DataError
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
     from pfnet.io import check_report_path
     from pfnet.metrics import summarize
-    from pfnet.reports import format_table, write_csv, write_json
+    from pfnet.reports import format_table, write_csv
 
     if args.gallery is not None and not 1 <= args.gallery_count <= MAX_ROWS:
         # checked before the work: 1,000 rows once failed after every prediction was made
@@ -146,12 +147,7 @@ def run(args: argparse.Namespace) -> int:
     )
     print("Pred→GT, GT→Pred, CD-L2, CD-L1 ×1000; F-score at distance 0.01")
     print(format_table(evaluation, summary))
-    if args.json is not None:
-        write_json(args.json, evaluation.report)
-        print(f"wrote {args.json}")
-    if args.csv is not None:
-        write_csv(args.csv, evaluation)
-        print(f"wrote {args.csv}")
+    _write_reports(args, evaluation, write_csv)
     if args.gallery is not None:
         path = render_evaluation_gallery(
             args.gallery,
@@ -163,14 +159,7 @@ def run(args: argparse.Namespace) -> int:
             count=args.gallery_count,
         )
         print(f"wrote {path}")
-    problems = _report_problems(evaluation)
-    if problems and not args.allow_missing:
-        print(
-            "pfnet evaluate: some samples were not scored (pass --allow-missing to accept)",
-            file=sys.stderr,
-        )
-        return 2
-    return 0
+    return _exit_code(args, evaluation)
 
 
 def _scoring_protocol(args: argparse.Namespace) -> str:
@@ -199,7 +188,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     does."""
     from pfnet.io import check_report_path
     from pfnet.protocols import get_protocol
-    from pfnet.reports import format_benchmark_table, write_csv, write_json
+    from pfnet.reports import format_benchmark_table, write_csv
 
     chosen = get_protocol(protocol)
     for flag, value in (
@@ -266,25 +255,13 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     )
     print(f"{chosen.title}; CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 (PoinTr's), F-score at 0.01")
     print(format_benchmark_table(report))
-    if args.json is not None:
-        write_json(args.json, report)
-        print(f"wrote {args.json}")
-    if args.csv is not None:
-        write_csv(args.csv, evaluation)
-        print(f"wrote {args.csv}")
-    problems = _report_problems(evaluation)
-    if problems and not args.allow_missing:
-        print(
-            "pfnet evaluate: some samples were not scored (pass --allow-missing to accept)",
-            file=sys.stderr,
-        )
-        return 2
-    return 0
+    _write_reports(args, evaluation, write_csv)
+    return _exit_code(args, evaluation)
 
 
 def _run_kitti(args: argparse.Namespace) -> int:
     """``pfnet evaluate --protocol kitti``: Fidelity and MMD of the completions of the cars."""
-    from pfnet.reports import format_kitti_table, write_json, write_kitti_csv
+    from pfnet.reports import format_kitti_table, write_kitti_csv
 
     evaluation = evaluate_kitti(
         args.pred,
@@ -305,20 +282,8 @@ def _run_kitti(args: argparse.Namespace) -> int:
         "×1000 (PoinTr's KITTI_metric.py)"
     )
     print(format_kitti_table(report))
-    if args.json is not None:
-        write_json(args.json, report)
-        print(f"wrote {args.json}")
-    if args.csv is not None:
-        write_kitti_csv(args.csv, evaluation)
-        print(f"wrote {args.csv}")
-    problems = _report_problems(evaluation)
-    if problems and not args.allow_missing:
-        print(
-            "pfnet evaluate: some samples were not scored (pass --allow-missing to accept)",
-            file=sys.stderr,
-        )
-        return 2
-    return 0
+    _write_reports(args, evaluation, write_kitti_csv)
+    return _exit_code(args, evaluation)
 
 
 def _scoring_ratio(args: argparse.Namespace) -> float:
@@ -362,6 +327,30 @@ def _scoring_ratio(args: argparse.Namespace) -> float:
             f"not {ratio:g}; drop --missing-ratio, or pass --ignore-recorded-protocol"
         )
     return ratio
+
+
+def _write_reports(args: argparse.Namespace, evaluation: Any, write_csv: Any) -> None:
+    """``--json`` (the evaluation's report) and ``--csv`` (written by ``write_csv``)."""
+    from pfnet.reports import write_json
+
+    if args.json is not None:
+        write_json(args.json, evaluation.report)
+        print(f"wrote {args.json}")
+    if args.csv is not None:
+        write_csv(args.csv, evaluation)
+        print(f"wrote {args.csv}")
+
+
+def _exit_code(args: argparse.Namespace, evaluation: Any) -> int:
+    """0, or 2 when samples were not scored and ``--allow-missing`` was not given."""
+    problems = _report_problems(evaluation)
+    if problems and not args.allow_missing:
+        print(
+            "pfnet evaluate: some samples were not scored (pass --allow-missing to accept)",
+            file=sys.stderr,
+        )
+        return 2
+    return 0
 
 
 def _report_problems(evaluation: Evaluation, limit: int = 20) -> bool:

@@ -273,6 +273,26 @@ def _read(entry: _Entry, fmt: str) -> tuple[np.ndarray | None, np.ndarray | None
         return None, None, str(err).removeprefix(f"{entry.complete}: ")
 
 
+def keep_categories(entries: list, categories: list[str] | None) -> list:
+    """The index entries of ``categories`` (all of them with None).
+
+    Raises:
+        ConfigError: A category that no entry has, naming the ones there are.
+    """
+    if categories is None:
+        return entries
+    keep = {c.lower() for c in categories}
+    available = sorted({e.category for e in entries})
+    unknown = sorted(keep - set(available))
+    if unknown:
+        from pfnet.errors import ConfigError
+
+        raise ConfigError(
+            f"categories: {', '.join(unknown)} not in the source; available: {', '.join(available)}"
+        )
+    return [e for e in entries if e.category in keep]
+
+
 def prepare_benchmark(
     source: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -307,18 +327,7 @@ def prepare_benchmark(
     if not root.is_dir():
         raise DataError(f"{root}: the {fmt} format needs a folder")
     entries, skipped = _pcn_entries(root) if fmt == "pcn" else _shapenet_entries(root, fmt)
-    if categories is not None:
-        keep = {c.lower() for c in categories}
-        available = sorted({e.category for e in entries})
-        unknown = sorted(keep - set(available))
-        if unknown:
-            from pfnet.errors import ConfigError
-
-            raise ConfigError(
-                f"categories: {', '.join(unknown)} not in the source; "
-                f"available: {', '.join(available)}"
-            )
-        entries = [e for e in entries if e.category in keep]
+    entries = keep_categories(entries, categories)
     if strict and skipped:
         raise DataError(f"{skipped[0][0]}: {skipped[0][1]}")
     if not entries:

@@ -228,7 +228,7 @@ def prepare_kitti(
         DataError: A malformed ``KITTI.json``, no readable car, or (``strict``) any bad file.
     """
     from pfnet import __version__
-    from pfnet.data.benchmarks import PARTIAL_SUFFIX
+    from pfnet.data.benchmarks import PARTIAL_SUFFIX, keep_categories
     from pfnet.data.format import SPLITS, CloudSet, skipped_entries, write_dataset
     from pfnet.data.prepare import PrepareReport
     from pfnet.data.sources import unique_names
@@ -238,18 +238,7 @@ def prepare_kitti(
     if not root.is_dir():
         raise DataError(f"{root}: the kitti format needs a folder")
     entries, skipped = _kitti_entries(root)
-    if categories is not None:
-        keep = {c.lower() for c in categories}
-        available = sorted({e.category for e in entries})
-        unknown = sorted(keep - set(available))
-        if unknown:
-            from pfnet.errors import ConfigError
-
-            raise ConfigError(
-                f"categories: {', '.join(unknown)} not in the source; "
-                f"available: {', '.join(available)}"
-            )
-        entries = [e for e in entries if e.category in keep]
+    entries = keep_categories(entries, categories)
     if strict and skipped:
         raise DataError(f"{skipped[0][0]}: {skipped[0][1]}")
     if not entries:
