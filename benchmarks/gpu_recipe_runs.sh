@@ -47,8 +47,9 @@ PY
   exit 0
 fi
 
-[ "$1" = run ] || { echo "usage: $0 pack TRAIN VAL | run BUDGET_S" >&2; exit 2; }
-t0=$(date +%s); budget=$2
+[ "$1" = run ] || [ "$1" = study ] || {
+  echo "usage: $0 pack TRAIN VAL | run BUDGET_S | study BUDGET_S" >&2; exit 2; }
+mode=$1 t0=$(date +%s) budget=$2
 device=${DEVICE:-cuda} workers=${WORKERS:-4} cal_steps=${CAL_STEPS:-108} max_n=${MAX_N:-20000}
 out=${OUT:-/tmp/gpu-out}; mkdir -p "$out"
 work=$(mktemp -d)
@@ -68,13 +69,77 @@ shutil.copy(src / "manifest.json", dst)
 z = np.load(src / "train16.npz")
 np.savez(dst / "train.npz", **{k: (z[k].astype(np.float32) if k == "extra" else z[k]) for k in z.files})
 PY
-train() {  # NAME STEPS WIDTH SECONDS-LEFT [SEED]
+train() {  # NAME STEPS WIDTH SECONDS-LEFT [SEED] [MODEL] [MISSING-RATIO]
   timeout --signal=INT --kill-after=20 "$4" python3 -m pfnet.cli train --data "$work/train-data" \
-    --val-data .gpu/val-data --out "$work/$1" --model pfnet-vanilla --preset small \
+    --val-data .gpu/val-data --out "$work/$1" --model "${6:-pfnet-vanilla}" --preset small \
     --steps "$2" --width "$3" --seed "${5:-0}" --workers "$workers" --device "$device" \
-    > "$work/$1.log" 2>&1
+    --missing-ratio "${7:-0.25}" > "$work/$1.log" 2>&1
   echo "$1 exit $?" >> "$work/exits"
 }
+if [ "$mode" = study ]; then
+  # The study (pfnet reproduce) with the recipe: its seven settings (five models at 25 %
+  # missing, PF-Net at 50 and 75 %) trained on the training data set's train split at N and
+  # 2N steps, all fourteen runs side by side (--jobs 14), one seed. N comes from a short
+  # calibration of the fourteen running together (FORCE_N sets it), at most MAX_N (8,000:
+  # the shipped recipe's length). $OUT gets study.tgz: the published study (results.json,
+  # results.md, curves, gallery, every run's config, log and scores), or at least the logs.
+  export OMP_NUM_THREADS=1 RAYON_NUM_THREADS=2  # fourteen processes share the host's cores
+  max_n=${MAX_N:-8000} jobs=${JOBS:-14} workers=${WORKERS:-0}  # the small preset's loader
+  if [ -n "${STEPS:-}" ]; then  # STEPS="N ...", MODELS, RATIOS: that study, no calibration
+    lengths=$STEPS
+  else
+    log "calibration: the fourteen runs' models together for $cal_steps steps (CAL_STEPS=0: none)"
+    k=0
+    for spec in pfnet:0.25 pfnet-vanilla:0.25 mr-cmlp:0.25 cmlp:0.25 mlp:0.25 pfnet:0.5 pfnet:0.75; do
+      IFS=: read -r model ratio <<< "$spec"
+      for _ in 1 2; do k=$((k + 1))
+        [ "$cal_steps" -gt 0 ] && train "cal$k" "$cal_steps" 0.25 150 0 "$model" "$ratio" &
+      done
+    done
+    wait
+    n=$(python3 - "$work" "$t0" "$budget" "$max_n" <<'PY'
+import json, os, sys, time
+from pathlib import Path
+work, t0, budget, max_n = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+per_step = []
+for run in sorted(work.glob("cal*/log.jsonl")):
+    rows = [json.loads(line) for line in run.open() if '"step"' in line]
+    if len(rows) > 2:  # the first epoch holds the warm-up
+        steps = rows[-1]["step"] - rows[0]["step"]
+        per_step.append(sum(r["time_s"] for r in rows[1:]) / steps)
+t = max(per_step) if per_step else float("inf")
+# The 2N runs' time at the fourteen-way pace (an upper bound: the N runs end halfway), and
+# start-up, scoring, figures and packing after them.
+left = budget - (time.time() - t0) - 110
+n = int(min(max_n, left / (2 * t)) // 500 * 500) if per_step else 0
+n = int(os.environ.get("FORCE_N", n))
+print(json.dumps({"per_step_s": per_step, "n": n, "left_s": left}), file=sys.stderr)
+print(n)
+PY
+    )
+    log "N = $n"
+    lengths="$n $((2 * n))"
+    [ "$n" -ge "${MIN_N:-500}" ] || lengths=""
+  fi
+  if [ -n "$lengths" ]; then
+    left=$(( budget - ($(date +%s) - t0) - 25 ))
+    # shellcheck disable=SC2086  # word splitting of the lists is intended
+    timeout --signal=INT --kill-after=30 "$left" python3 -m pfnet.cli reproduce \
+      --out "$work/study" --data .gpu/val-data --train-data "$work/train-data" --preset small \
+      --device "$device" --seeds 0 --steps $lengths --jobs "$jobs" --gallery-count 5 \
+      --models ${MODELS:-pfnet pfnet-vanilla mr-cmlp cmlp mlp} --ratios ${RATIOS:-0.25 0.5 0.75} \
+      --publish "$work/pub" 2>&1 | grep -v "^epoch " | tail -60
+    log "reproduce exit ${PIPESTATUS[0]}"
+  else
+    log "no time for the study"
+  fi
+  # Whatever there is: the published study, else every run's config and log.
+  (cd "$work" && { [ -f pub/results.json ] && tar czf "$out/study.tgz" pub \
+    || tar czf "$out/study.tgz" --ignore-failed-read study/runs/*/config.json \
+      study/runs/*/log.jsonl cal*/log.jsonl; })
+  ls -la "$out"; log "done"
+  exit 0
+fi
 if [ -n "${RUNS:-}" ]; then  # RUNS="NAME:STEPS:WIDTH:SEED ...": these runs, no calibration
   left=$(( budget - ($(date +%s) - t0) - 40 ))
   for spec in $RUNS; do IFS=: read -r name steps width seed <<< "$spec"

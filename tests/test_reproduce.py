@@ -20,6 +20,8 @@ from pfnet.study import (
     study_runs,
     update_readme,
 )
+from pfnet.study.aggregate import reported_settings, twice_the_steps
+from pfnet.study.record import read_results
 
 ROOT = Path(__file__).resolve().parent.parent
 PUBLISHED = ROOT / "docs" / "results"
@@ -47,9 +49,22 @@ def test_study_runs_are_the_ablation_then_the_ratios_seed_by_seed():
         "pfnet-75-seed1",
     ]
     assert runs[-1].setting == "pfnet-75" and runs[-1].seed == 1
+    # A study sized in steps: every setting at each length, seed by seed, length by length.
+    runs = study_runs(["pfnet", "mlp"], [0.25, 0.5], seeds=[0, 1], lengths=[100, 200])
+    assert [r.name for r in runs[:6]] == [
+        "pfnet-25-100steps-seed0",
+        "mlp-25-100steps-seed0",
+        "pfnet-50-100steps-seed0",
+        "pfnet-25-200steps-seed0",
+        "mlp-25-200steps-seed0",
+        "pfnet-50-200steps-seed0",
+    ]
+    assert len(runs) == 12 and runs[-1].steps == 200 and runs[-1].setting == "pfnet-50-200steps"
 
 
-def _record(model, seed, missing, whole=(1.0, 1.0), curve=(3.0, 2.0, 1.0, 1.0), ratio=0.25):
+def _record(
+    model, seed, missing, whole=(1.0, 1.0), curve=(3.0, 2.0, 1.0, 1.0), ratio=0.25, steps=None
+):
     """A run record as ``evaluate_run`` makes it; ``missing`` maps category -> (p2g, g2p)."""
 
     def region(pairs):
@@ -61,7 +76,7 @@ def _record(model, seed, missing, whole=(1.0, 1.0), curve=(3.0, 2.0, 1.0, 1.0), 
         del mean["n"]
         return {"categories": cats, "mean": mean}
 
-    run = StudyRun(model, ratio, seed)
+    run = StudyRun(model, ratio, seed, steps)
     best = min(range(len(curve)), key=curve.__getitem__)
     return {
         "name": run.name,
@@ -69,6 +84,7 @@ def _record(model, seed, missing, whole=(1.0, 1.0), curve=(3.0, 2.0, 1.0, 1.0), 
         "model": model,
         "missing_ratio": ratio,
         "seed": seed,
+        **({} if steps is None else {"steps": steps}),
         "n_missing": 128,
         "parameters": 1000,
         "train_time_s": 10.0,
@@ -138,6 +154,69 @@ def test_report_tables_and_claims_use_the_seed_means():
     assert row == (
         "| the adversarial loss helps | PF-Net vs PF-Net (vanilla) | 1.000 vs 2.000 ✓ "
         "| 2.000 vs 1.500 ✗ | 3.000 vs 3.500 ✓ | 1 of 1 | 1 of 2 |"
+    )
+
+
+def test_twice_the_steps_shows_the_shortest_length_every_setting_converged_at():
+    chair = {"chair": (1.0, 1.0)}
+
+    def study(mlp_curves):
+        return [
+            # pfnet: 100 -> 200 steps gains 20 % (still improving), 200 -> 400 gains 2 %.
+            _record("pfnet", 0, chair, curve=(9.0, 5.0), steps=100),
+            _record("pfnet", 0, {"chair": (0.5, 0.5)}, curve=(9.0, 4.0), steps=200),
+            _record("pfnet", 0, chair, curve=(9.0, 3.92), steps=400),
+            *(
+                _record("mlp", 0, {"chair": (c, c)}, curve=(9.0, c), steps=n)
+                for c, n in zip(mlp_curves, (100, 200, 400), strict=True)
+            ),
+        ]
+
+    # mlp converged at 200 too: both tables show 200 steps.
+    settings = reproduce.summarize_settings(study((6.0, 5.0, 4.96)))
+    assert [s["steps"] for s in settings] == [100, 200, 400, 100, 200, 400]
+    test = twice_the_steps(settings, 0.03)
+    assert (test["lengths"], test["shown"], test["all_converged"]) == ([100, 200, 400], 200, True)
+    pfnet, mlp = test["entries"]
+    assert pfnet["gains"] == pytest.approx([0.2, 0.02]) and pfnet["converged"] == [False, True]
+    assert [s["name"] for s in reported_settings(settings, 0.03)] == [
+        "pfnet-25-200steps",
+        "mlp-25-200steps",
+    ]
+    # mlp gains more than 3 % at every doubling: the tables show the longest length.
+    runs = study((8.0, 7.0, 6.0))
+    settings = reproduce.summarize_settings(runs)
+    test = twice_the_steps(settings, 0.03)
+    assert (test["shown"], test["all_converged"]) == (400, False)
+    assert test["entries"][1]["converged"] == [False, False]
+    results = {
+        "settings": settings,
+        "runs": runs,
+        "seeds": [0],
+        "dataset": {"source": "x", "points": 512, "splits": {"train": 1}, "credits": []},
+        "train_dataset": {"source": "y", "points": 512, "splits": {"train": 9}},
+        "machine": {"device": "cpu", "name": "x", "torch_threads": 2, "torch": "2"},
+        "config": {
+            "width": 0.25,
+            "batch_size": 16,
+            "lr": 0.001,
+            "lr_gamma": 0.2,
+            "lr_step": 40,
+            "epochs": 200,
+            "lr_milestones": [0.5, 0.75],
+        },
+        "preset": "small",
+        "study_time_s": 60.0,
+    }
+    report = render_report(results)
+    assert "every setting trained for 100 and 200 and 400 optimiser steps" in report
+    assert "trained on the train split of **y** (9 train)" in report
+    assert "so the tables above show the longest, 400 steps" in report
+    assert "| chair | 2 | 1.000 / 1.000 | 6.000 / 6.000 |" in report  # both at 400 steps
+    assert "| PF-Net, 25% | 1,000 | 100 | 2 / 2 | 5.000 | 2.000 | 0.2 min | +20.0%: still" in report
+    assert "| PF-Net, 25% | 1,000 | 200 | 2 / 2 | 4.000 | 1.000 | 0.2 min | +2.0%: conv" in report
+    assert (
+        "| MLP, 25% | 1,000 | **400** | 2 / 2 | 6.000 | 12.000 | 0.2 min | not tested |" in report
     )
 
 
@@ -255,28 +334,90 @@ def test_reproduce_end_to_end_resumes_publishes_and_fills_the_readme(
     )
 
 
+@pytest.mark.slow
+def test_reproduce_in_steps_side_by_side_on_other_training_data(tmp_path, tiny_dataset, capfd):
+    """--steps N 2N trains every setting at both lengths, --jobs 2 two at a time in their own
+    processes, --train-data on another data set's train split; the record reads back."""
+    pytest.importorskip("torch")
+    import shutil
+
+    train_data = tmp_path / "train-data"
+    shutil.copytree(tiny_dataset, train_data)
+    out = tmp_path / "study"
+    argv = ["reproduce", "--out", str(out), "--data", str(tiny_dataset), "--device", "cpu"]
+    argv += ["--models", "pfnet-vanilla", "mlp", "--ratios", "0.25", "--width", "0.125"]
+    argv += ["--batch-size", "8", "--gallery-count", "1", "--seeds", "0", "--steps", "6", "3"]
+    argv += ["--train-data", str(train_data), "--jobs", "2"]
+    assert main(argv) == 0
+    text = capfd.readouterr().out
+    assert "mlp-25-6steps-seed0: training 6 steps on cpu" in text
+    results = read_results(out / "results.json")
+    names = ["pfnet-vanilla-25-3steps", "mlp-25-3steps", "pfnet-vanilla-25-6steps", "mlp-25-6steps"]
+    assert [r["name"] for r in results["runs"]] == [f"{n}-seed0" for n in names]
+    assert [s["steps"] for s in results["settings"]] == [3, 3, 6, 6]
+    assert results["train_dataset"]["splits"]["train"] == 24
+    for run in results["runs"]:
+        folder = out / "runs" / run["name"]
+        assert json.loads((folder / "config.json").read_text())["steps"] == run["steps"]
+        log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+        assert log[-1]["step"] == run["steps"] and run["epochs"] == run["steps"] // 3
+    report = (out / "results.md").read_text()
+    assert report == render_report(results) and "the twice-the-steps test" in report
+    assert (out / "gallery.png").read_bytes()[:4] == b"\x89PNG"
+    # Again: everything is trained; the report alone is rebuilt from the record.
+    assert main(argv) == 0
+    assert "mlp-25-3steps-seed0: already trained (3 steps)" in capfd.readouterr().out
+    assert main(["reproduce", "--out", str(out), "--data", str(tiny_dataset), "--report-only"]) == 0
+
+
+def test_reproduce_length_and_job_options_are_checked(tmp_path, capsys):
+    out = ["reproduce", "--out", str(tmp_path / "r")]
+    for extra, problem in (
+        (["--steps", "0"], "--steps: run lengths must be different integers >= 1"),
+        (["--steps", "5", "5"], "--steps: run lengths must be different integers >= 1"),
+        (["--steps", "1", "2", "3", "4", "5"], "--steps: at most 4 run lengths"),
+        (["--steps", "5", "--epochs", "3"], "--epochs and --steps size the runs two ways"),
+        (["--jobs", "0"], "--jobs must be between 1 and 64; got 0"),
+    ):
+        assert main([*out, *extra]) == 1
+        assert problem in capsys.readouterr().err
+    pytest.importorskip("torch")  # the data checks come after the device is resolved
+    argv = [*out, "--data", str(tmp_path), "--train-data", str(tmp_path / "x"), "--device", "cpu"]
+    (tmp_path / "manifest.json").write_text("{}")
+    assert main(argv) == 1
+    assert f"--train-data {tmp_path / 'x'} is not a prepared data set" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(not (PUBLISHED / "results.json").is_file(), reason="no published results")
 def test_readme_results_are_the_published_run():
-    """The README's numbers are generated from docs/results, whose files agree."""
+    """The README's numbers are generated from docs/results, whose files agree; the
+    10,000-step runs of docs/results/longer-runs are the README's twice-the-steps table."""
     results = json.loads((PUBLISHED / "results.json").read_text())
     assert readme_section(ROOT / "README.md") == render_report(results, "docs/results/").strip("\n")
-    assert (PUBLISHED / "results.md").read_text() == render_report(results)
-    assert results["settings"] == reproduce.summarize_settings(results["runs"])
-    assert [r["name"] for r in results["runs"]] == [
-        r.name for r in study_runs(reproduce.STUDY_MODELS, reproduce.STUDY_RATIOS, results["seeds"])
-    ]
-    for run in results["runs"]:
-        folder = PUBLISHED / "runs" / run["name"]
-        for region in ("missing", "whole"):
-            report = json.loads((folder / f"eval-{region}.json").read_text())
-            assert report["mean"] == run[region]["mean"]
-            assert report["categories"] == run[region]["categories"]
-        log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
-        assert [row["val_cd_l2"] for row in log[1:]] == run["curve"]["val_cd_l2"]
-        config = json.loads((folder / "config.json").read_text())
-        assert config["model"] == run["model"] and config["missing_ratio"] == run["missing_ratio"]
-        assert config["seed"] == run["seed"]
-        assert config["epochs"] == results["config"]["epochs"]
-        # Every model was trained until validation levelled off.
-        assert run["plateau"] == plateau(run["curve"]["val_cd_l2"])
-        assert run["plateau"]["levelled"], run["name"]
+    for folder in (PUBLISHED, PUBLISHED / "longer-runs"):
+        record = read_results(folder / "results.json")  # checked whole, as --report-only does
+        assert (folder / "results.md").read_text() == render_report(record)
+        for run in record["runs"]:
+            _check_published_run(folder / "runs" / run["name"], run)
+    # The README's table of 5,000 against 10,000 steps: the two records' validation gains.
+    longer = read_results(PUBLISHED / "longer-runs" / "results.json")
+    by_name = {s["name"]: s for s in results["settings"]}
+    readme = (ROOT / "README.md").read_text()
+    for setting in longer["settings"]:
+        before = by_name[setting["name"].replace("10000steps", "5000steps")]
+        a, b = before["best_val_cd_l2"], setting["best_val_cd_l2"]
+        assert f"| {a:.3f} | {b:.3f} | {(a - b) / a:+.1%}: " in readme, setting["name"]
+
+
+def _check_published_run(folder: Path, run: dict) -> None:
+    for region in ("missing", "whole"):
+        report = json.loads((folder / f"eval-{region}.json").read_text())
+        assert report["mean"] == run[region]["mean"]
+        assert report["categories"] == run[region]["categories"]
+    log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+    assert [row["val_cd_l2"] for row in log[1:]] == run["curve"]["val_cd_l2"]
+    assert log[-1]["step"] == run["steps"]  # the run reached its length
+    config = json.loads((folder / "config.json").read_text())
+    assert config["model"] == run["model"] and config["missing_ratio"] == run["missing_ratio"]
+    assert config["seed"] == run["seed"] and config["steps"] == run["steps"]
+    assert run["plateau"] == plateau(run["curve"]["val_cd_l2"])

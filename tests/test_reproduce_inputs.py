@@ -70,12 +70,12 @@ def _forged(record: dict, edit) -> dict:
     ("edit", "problem"),
     [
         (
-            lambda r: r["runs"][0]["curve"].__setitem__("val_cd_l2", ["x"] * 200),
-            "runs[0].curve.val_cd_l2 must hold a finite number for each of the 200 epochs",
+            lambda r: r["runs"][0]["curve"].__setitem__("val_cd_l2", ["x"] * 70),
+            "runs[0].curve.val_cd_l2 must hold a finite number for each of the 70 epochs",
         ),
         (
             lambda r: r["runs"][0]["curve"].__setitem__("epoch", [1, 2, 3]),
-            "runs[0].curve.epoch must list the epochs 1 to 200",
+            "runs[0].curve.epoch must list the epochs 1 to 70",
         ),
         (
             lambda r: r["runs"][1]["curve"]["val_cd_l2"].__setitem__(5, float("inf")),
@@ -100,7 +100,7 @@ def _forged(record: dict, edit) -> dict:
         ),
         (lambda r: r["runs"].pop(), "the runs are not those of a study"),
         (lambda r: r["runs"][2].__setitem__("name", "/etc"), "the runs are not those of a study"),
-        (lambda r: r.__setitem__("runs", r["runs"] * 20), f"a study has at most {MAX_RUNS}"),
+        (lambda r: r.__setitem__("runs", r["runs"] * 120), f"a study has at most {MAX_RUNS}"),
         (lambda r: r.__setitem__("seeds", list(range(40))), "seeds must be a list of 1 to 30"),
         (lambda r: r["dataset"].__setitem__("credits", [1]), "dataset.credits must be a list"),
     ],
@@ -120,12 +120,12 @@ def test_report_only_on_forged_records_is_one_line_and_fast(tmp_path: Path, caps
     out = tmp_path / "results"
     shutil.copytree(RESULTS, out)
     record = json.loads((out / "results.json").read_text())
-    many = _forged(record, lambda r: r.__setitem__("runs", r["runs"] * 100))
+    many = _forged(record, lambda r: r.__setitem__("runs", r["runs"] * 120))
     for forged, problem in (
-        (many, f"2,100 runs; a study has at most {MAX_RUNS}"),
+        (many, f"1,680 runs; a study has at most {MAX_RUNS}"),
         (
             _forged(record, lambda r: r["runs"][0]["curve"]["epoch"].pop()),
-            "runs[0].curve.epoch must list the epochs 1 to 200",
+            "runs[0].curve.epoch must list the epochs 1 to 70",
         ),
     ):
         (out / "results.json").write_text(json.dumps(forged))

@@ -6,7 +6,9 @@ The study of the paper's Tables 2, 4 and 5:
   missing, with identical data, epochs and schedule;
 * PF-Net at 50 % and 75 % missing (the robustness study; M changes with the ratio);
 * every such setting trained once per seed (0, 1, 2 by default), the tables giving the mean
-  over the seeds and the spread between them.
+  over the seeds and the spread between them;
+* with ``--steps N 2N``, every setting also at each length in optimiser steps: the
+  twice-the-steps test of convergence, the tables showing the shortest converged length.
 
 Every run is predicted on the test split with the deterministic test protocol and scored on
 the missing region and on the whole cloud. The results folder::
@@ -14,6 +16,7 @@ the missing region and on the whole cloud. The results folder::
     OUT/data/                    the prepared data set (reused when present)
     OUT/runs/<run>/              config.json, log.jsonl, curves.png, best.pt, last.pt;
                                  <run> is <model>-<percent missing>-seed<seed>
+                                 (<model>-<percent>-<N>steps-seed<seed> with --steps)
     OUT/runs/<run>/predictions/  predicted missing regions of the test split
     OUT/runs/<run>/eval-missing.json, eval-whole.json
     OUT/results.json             every run's record and the settings combined over seeds;
@@ -39,12 +42,17 @@ from pfnet.study.record import read_results
 from pfnet.study.report import checked_report, publish, publish_readme, read_readme
 from pfnet.study.runs import (
     BASE_RATIO,
+    MAX_LENGTHS,
     MAX_RATIOS,
     MAX_SEEDS,
     STUDY_MODELS,
     STUDY_RATIOS,
     STUDY_SEEDS,
 )
+
+# Trainings side by side on one device: a GPU's host has a few cores per run to give.
+MAX_JOBS = 64
+
 
 HELP = "Re-run the paper's comparisons: five models, three missing ratios, tables and figures."
 
@@ -79,6 +87,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--ratios", nargs="+", type=float, default=list(STUDY_RATIOS), metavar="RATIO"
     )
     parser.add_argument("--epochs", type=int, default=None, help="override the schedule's")
+    parser.add_argument(
+        "--steps",
+        nargs="+",
+        type=int,
+        default=None,
+        metavar="N",
+        help="size every run in optimiser steps instead of epochs (the schedule's milestones "
+        "become fractions of the run); several lengths train every setting at each, e.g. "
+        "--steps 8000 16000 for the twice-the-steps test",
+    )
+    parser.add_argument(
+        "--train-data",
+        type=Path,
+        default=None,
+        help="train on this prepared data set's train split (e.g. every catalogue model, "
+        "pfnet prepare --categories all); validation and test stay the study's data set",
+    )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="train up to this many runs side by side on the device, each in its own "
+        "process (a GPU that one small run leaves idle); default 1",
+    )
     parser.add_argument("--width", type=float, default=None, help="override the preset's")
     parser.add_argument("--batch-size", type=int, default=None, help="override the preset's")
     parser.add_argument(
@@ -121,6 +153,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--ratios: at most {MAX_RATIOS} missing ratios, 0.25 included")
     if len(set(args.seeds)) > MAX_SEEDS:
         raise ConfigError(f"--seeds: at most {MAX_SEEDS} seeds")
+    if args.steps is not None:
+        if any(n < 1 for n in args.steps) or len(set(args.steps)) != len(args.steps):
+            raise ConfigError("--steps: run lengths must be different integers >= 1")
+        if len(args.steps) > MAX_LENGTHS:
+            raise ConfigError(f"--steps: at most {MAX_LENGTHS} run lengths")
+        if args.epochs is not None:
+            raise ConfigError("--epochs and --steps size the runs two ways; give one of them")
+    if not 1 <= args.jobs <= MAX_JOBS:
+        raise ConfigError(f"--jobs must be between 1 and {MAX_JOBS}; got {args.jobs}")
     if args.readme is not None:
         if not args.readme.is_file():
             raise ConfigError(f"--readme {args.readme} does not exist")
@@ -128,8 +169,9 @@ def run(args: argparse.Namespace) -> int:
     if not args.report_only:  # the options of a study to run, not of a report to rebuild
         if args.data is None and args.source is not None and not args.source.exists():
             raise ConfigError(f"--source {args.source} does not exist")
-        if args.data is not None and not (args.data / "manifest.json").is_file():
-            raise DataError(f"--data {args.data} is not a prepared data set (no manifest.json)")
+        for flag, folder in (("--data", args.data), ("--train-data", args.train_data)):
+            if folder is not None and not (folder / "manifest.json").is_file():
+                raise DataError(f"{flag} {folder} is not a prepared data set (no manifest.json)")
     if args.report_only:
         try:  # a results.json edited by hand (or forged) must not end in a traceback
             results = read_results(out / "results.json")
@@ -165,6 +207,9 @@ def run(args: argparse.Namespace) -> int:
             ratios=list(dict.fromkeys(args.ratios)),
             overrides={"epochs": args.epochs, "width": args.width, "batch_size": args.batch_size},
             gallery_count=args.gallery_count,
+            lengths=sorted(args.steps) if args.steps else None,
+            train_data=args.train_data,
+            jobs=args.jobs,
         )
     published = out
     if args.publish is not None:

@@ -64,6 +64,7 @@ def summarize_settings(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "name": name,
                 "model": first["model"],
                 "missing_ratio": first["missing_ratio"],
+                **({"steps": first["steps"]} if "steps" in first else {}),
                 "n_missing": first["n_missing"],
                 "parameters": first["parameters"],
                 "seeds": [r["seed"] for r in group],
@@ -82,3 +83,61 @@ def summarize_settings(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
             }
         )
     return settings
+
+
+def twice_the_steps(settings: list[dict[str, Any]], tolerance: float) -> dict[str, Any]:
+    """The twice-the-steps test of a study sized in steps, and the length its tables show.
+
+    For each model and missing ratio, its settings of increasing length (in steps) are
+    compared in turn: a length is *converged* when the next one's best validation CD-L2 (mean
+    over seeds) is not lower by more than ``tolerance`` (a fraction). The tables compare the
+    models at one length, as the paper trains them all alike: the shortest length at which
+    every setting is converged, or the longest if there is none.
+
+    Returns:
+        ``lengths`` (the study's run lengths, increasing), ``shown`` (the length the tables
+        show), ``all_converged`` (whether every setting passed the test at it) and
+        ``entries``: one per model and ratio, in order of first appearance, with ``lengths``
+        (its settings by length), ``gains`` (for each length but the last, the relative
+        validation gain of the next one; positive: the longer run is better) and
+        ``converged`` (for each length but the last, whether it passed).
+    """
+    groups: dict[tuple[str, float], list[dict[str, Any]]] = {}
+    for setting in settings:
+        groups.setdefault((setting["model"], setting["missing_ratio"]), []).append(setting)
+    entries = []
+    for group in groups.values():
+        by_length = sorted(group, key=lambda s: s.get("steps") or 0)
+        gains = [
+            (a["best_val_cd_l2"] - b["best_val_cd_l2"]) / a["best_val_cd_l2"]
+            for a, b in zip(by_length, by_length[1:], strict=False)
+        ]
+        entries.append(
+            {
+                "lengths": by_length,
+                "gains": gains,
+                "converged": [gain <= tolerance for gain in gains],
+            }
+        )
+    lengths = sorted({s.get("steps") or 0 for s in settings})
+    passed = [
+        k
+        for k in range(len(lengths) - 1)
+        if all(len(e["converged"]) > k and e["converged"][k] for e in entries)
+    ]
+    shown = passed[0] if passed else len(lengths) - 1
+    return {
+        "lengths": lengths,
+        "shown": lengths[shown],
+        "all_converged": bool(passed),
+        "entries": entries,
+    }
+
+
+def reported_settings(settings: list[dict[str, Any]], tolerance: float) -> list[dict[str, Any]]:
+    """The settings the tables and figures show: all of them, or in a study sized in steps
+    those of the length :func:`twice_the_steps` picks."""
+    if not any("steps" in s for s in settings):
+        return settings
+    shown = twice_the_steps(settings, tolerance)["shown"]
+    return [s for s in settings if s.get("steps") == shown]

@@ -8,7 +8,8 @@ from typing import Any
 import numpy as np
 
 from pfnet.models.registry import MODEL_TITLES
-from pfnet.study.runs import BASE_RATIO
+from pfnet.study.aggregate import reported_settings
+from pfnet.study.runs import BASE_RATIO, CONVERGENCE_TOLERANCE
 
 
 def plot_curves(path: Path, results: dict[str, Any]) -> Path:
@@ -26,7 +27,7 @@ def plot_curves(path: Path, results: dict[str, Any]) -> Path:
 
     fig = Figure(figsize=(10, 3.6), dpi=90)
     axes = fig.subplots(1, 2)
-    settings = results["settings"]
+    settings = reported_settings(results["settings"], CONVERGENCE_TOLERANCE)
     groups = (
         (
             "missing 25 %: the five models",
@@ -66,7 +67,7 @@ def plot_curves(path: Path, results: dict[str, Any]) -> Path:
             fontsize=9,
         )
         ax.grid(True, which="both", alpha=0.3)
-        if runs:
+        if group:  # a study without PF-Net has no ratio curves
             ax.legend(fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
@@ -85,7 +86,12 @@ def render_comparison(
 
     # One seed's predictions (the first): an average of seeds is no one model's output.
     seed = results["seeds"][0]
-    runs = [r for r in results["runs"] if r["missing_ratio"] == BASE_RATIO and r["seed"] == seed]
+    shown = {s["name"] for s in reported_settings(results["settings"], CONVERGENCE_TOLERANCE)}
+    runs = [
+        r
+        for r in results["runs"]
+        if r["missing_ratio"] == BASE_RATIO and r["seed"] == seed and r["setting"] in shown
+    ]
     if not runs or count < 1:
         return None
     clouds = load_split(data_dir, "test")

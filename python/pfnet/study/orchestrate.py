@@ -19,6 +19,7 @@ from pfnet.study.runs import (
     STUDY_MODELS,
     STUDY_RATIOS,
     STUDY_SEEDS,
+    StudyRun,
     evaluate_run,
     study_config,
     study_runs,
@@ -39,9 +40,19 @@ def reproduce(
     ratios: Sequence[float] = STUDY_RATIOS,
     overrides: dict[str, Any] | None = None,
     gallery_count: int = 5,
+    lengths: Sequence[int] | None = None,
+    train_data: Path | None = None,
+    jobs: int = 1,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Run the study into ``out`` (see the module docstring); returns ``results.json``."""
+    """Run the study into ``out`` (see the module docstring); returns ``results.json``.
+
+    ``lengths`` sizes every run in optimiser steps instead of the schedule's epochs, each
+    setting trained once per length (``[N, 2N]``: the twice-the-steps test). ``train_data``
+    trains every run on that data set's train split (validation and test stay ``data``'s).
+    ``jobs`` runs up to that many trainings side by side, each in its own process, on the
+    one device (a small network's step leaves most of a GPU idle).
+    """
     from pfnet.data import prepare_dataset, read_manifest
 
     base = study_config(preset, **(overrides or {}))
@@ -63,12 +74,24 @@ def reproduce(
             "a larger validation (or test) fraction, or with more shapes per category"
         )
 
+    train_manifest = None
+    if train_data is not None:
+        if not (train_data / "manifest.json").is_file():
+            raise DataError(f"{train_data} is not a prepared data set (no manifest.json)")
+        train_manifest = read_manifest(train_data)
+        if not train_manifest["splits"].get("train", {}).get("total"):
+            raise DataError(f"training data set {train_data} has no shapes in its train split")
+
     records = []
-    runs = study_runs(models, ratios, seeds)
+    runs = study_runs(models, ratios, seeds, list(lengths) if lengths else [None])
+    if jobs > 1:
+        train_side_by_side(runs, base, data_dir, out / "runs", device, jobs, train_data, log)
     for k, run in enumerate(runs, 1):
         run_dir = out / "runs" / run.name
         prefix = f"[{k}/{len(runs)}] "
-        train_run(run, base, data_dir, run_dir, device, lambda msg, p=prefix: log(p + msg))
+        train_run(
+            run, base, data_dir, run_dir, device, lambda msg, p=prefix: log(p + msg), train_data
+        )
         t0 = time.monotonic()
         records.append(evaluate_run(run, data_dir, run_dir, device))
         records[-1]["eval_time_s"] = round(time.monotonic() - t0, 1)
@@ -85,6 +108,7 @@ def reproduce(
         "created": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": _machine(device),
         "dataset": _dataset_summary(manifest),
+        **({} if train_manifest is None else {"train_dataset": _dataset_summary(train_manifest)}),
         "preset": preset,
         "config": config,
         "seeds": list(seeds),
@@ -95,6 +119,97 @@ def reproduce(
     }
     write_results(out, results, data_dir, gallery_count)
     return results
+
+
+def train_side_by_side(
+    runs: Sequence[StudyRun],
+    base: Any,
+    data_dir: Path,
+    runs_dir: Path,
+    device: str,
+    jobs: int,
+    train_data: Path | None,
+    log: Callable[[str], None],
+) -> None:
+    """Train ``runs`` with up to ``jobs`` processes at a time (each :func:`train_run`).
+
+    Each process is a fresh interpreter (spawned), so CUDA and the data loaders' workers
+    start cleanly in it. Ctrl-C reaches every process: each saves its ``last.pt`` and the
+    next call resumes them. A run that fails stops the study once the others have finished,
+    naming the run; its own error is above, in its output.
+    """
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    waiting = list(enumerate(runs, 1))
+    running: list[tuple[str, Any]] = []
+    failed = []
+    try:
+        while waiting or running:
+            while waiting and len(running) < jobs:
+                k, run = waiting.pop(0)
+                process = context.Process(
+                    target=_train_in_process,
+                    args=(
+                        run,
+                        base,
+                        data_dir,
+                        runs_dir / run.name,
+                        device,
+                        train_data,
+                        f"[{k}/{len(runs)}] ",
+                    ),
+                    name=run.name,
+                )
+                process.start()
+                running.append((run.name, process))
+            for name, process in list(running):
+                process.join(timeout=0.2)
+                if process.exitcode is not None:
+                    running.remove((name, process))
+                    if process.exitcode != 0:
+                        failed.append(name)
+    except KeyboardInterrupt:
+        for _, process in running:  # each saves its last.pt on the same Ctrl-C
+            process.join()
+        raise
+    if failed:
+        raise DataError(
+            f"training failed for {', '.join(failed)} (exit codes above); the other runs are "
+            "kept, and running the study again resumes where it stopped"
+        )
+
+
+def _train_in_process(
+    run: StudyRun,
+    base: Any,
+    data_dir: Path,
+    run_dir: Path,
+    device: str,
+    train_data: Path | None,
+    prefix: str,
+) -> None:
+    """One run of :func:`train_side_by_side` in its own process; its exit code says how it went."""
+    import sys
+
+    from pfnet.errors import PfnetError
+
+    try:
+        train_run(
+            run,
+            base,
+            data_dir,
+            run_dir,
+            device,
+            lambda msg: print(prefix + msg, flush=True),
+            train_data,
+            progress=False,
+        )
+    except KeyboardInterrupt:
+        sys.exit(130)
+    except (PfnetError, OSError, MemoryError) as err:  # the CLI's one-line errors
+        print(f"{prefix}{run.name}: error: {err}", file=sys.stderr, flush=True)
+        sys.exit(1)
 
 
 def _machine(device: str) -> dict[str, Any]:

@@ -17,6 +17,7 @@ from pfnet.errors import DataError
 from pfnet.study.aggregate import summarize_settings
 from pfnet.study.runs import (
     BASE_RATIO,
+    MAX_LENGTHS,
     MAX_RATIOS,
     MAX_RUNS,
     MAX_SEEDS,
@@ -30,6 +31,10 @@ MAX_RESULTS_BYTES = 64 << 20
 
 # The most epochs a run's curve may list (the paper trains 200).
 MAX_EPOCHS = 100_000
+
+
+# The longest run a record may list, in optimiser steps.
+MAX_STEPS = 100_000_000
 
 
 class _Malformed(ValueError):
@@ -145,6 +150,9 @@ def _run(run: Any, where: str, first: dict[str, Any] | None) -> None:
         f"{where}: missing_ratio must be a number in (0, 1)",
     )
     _need(_is_int(run.get("seed")), f"{where}: seed must be an integer")
+    if "steps" in run:  # a study sized in steps (reproduce --steps)
+        _int(run, "steps", where, low=1)
+        _need(run["steps"] <= MAX_STEPS, f"{where}: more than {MAX_STEPS:,} steps")
     for key in ("name", "setting"):
         _string(run, key, where)
     _int(run, "n_missing", where, low=1)
@@ -160,25 +168,32 @@ def _run(run: Any, where: str, first: dict[str, Any] | None) -> None:
         _region(run, region, where, first)
 
 
+def _dataset(value: Any, where: str) -> None:
+    """Check a data set's summary (``_dataset_summary``)."""
+    data = _object(value, where)
+    _string(data, "source", where)
+    _int(data, "points", where, low=1)
+    splits = _object(data.get("splits"), f"{where}.splits")
+    _need(
+        all(_is_int(n) and n >= 0 for n in splits.values()),
+        f"{where}.splits: counts must be integers",
+    )
+    credits = data.get("credits", [])
+    _need(
+        isinstance(credits, list) and all(isinstance(c, str) for c in credits),
+        f"{where}.credits must be a list of strings",
+    )
+
+
 def _header(results: dict[str, Any]) -> None:
     """Check what the report says of the study as a whole."""
     _need(results.get("format") == "pfnet-results", 'format must be "pfnet-results"')
     _need(results.get("version") == 2, "version must be 2 (this pfnet writes version 2)")
     _string(results, "preset", "the record")
     _number(results, "study_time_s", "the record")
-    data = _object(results.get("dataset"), "dataset")
-    _string(data, "source", "dataset")
-    _int(data, "points", "dataset", low=1)
-    splits = _object(data.get("splits"), "dataset.splits")
-    _need(
-        all(_is_int(n) and n >= 0 for n in splits.values()),
-        "dataset.splits: counts must be integers",
-    )
-    credits = data.get("credits", [])
-    _need(
-        isinstance(credits, list) and all(isinstance(c, str) for c in credits),
-        "dataset.credits must be a list of strings",
-    )
+    for key in ("dataset", "train_dataset"):
+        if key == "dataset" or key in results:  # train_dataset: reproduce --train-data
+            _dataset(results.get(key), key)
     machine = _object(results.get("machine"), "machine")
     for key in ("device", "name", "torch"):
         _string(machine, key, "machine")
@@ -217,19 +232,26 @@ def check_results(results: Any) -> None:
         _run(run, f"runs[{k}]", runs[0] if k else None)
     first = [r for r in runs if r["seed"] == seeds[0]]
     models = list(dict.fromkeys(r["model"] for r in first if r["missing_ratio"] == BASE_RATIO))
-    ratios = [BASE_RATIO] + [
-        r["missing_ratio"]
-        for r in first
-        if r["model"] == "pfnet" and r["missing_ratio"] != BASE_RATIO
-    ]
+    ratios = [BASE_RATIO] + list(
+        dict.fromkeys(
+            r["missing_ratio"]
+            for r in first
+            if r["model"] == "pfnet" and r["missing_ratio"] != BASE_RATIO
+        )
+    )
     _need(
         len(ratios) <= MAX_RATIOS, f"{len(ratios)} missing ratios; a study has at most {MAX_RATIOS}"
     )
+    lengths = list(dict.fromkeys(r.get("steps") for r in first))
+    _need(len(lengths) <= MAX_LENGTHS, f"{len(lengths)} run lengths; at most {MAX_LENGTHS}")
     expected = [
-        (r.name, r.setting, r.model, r.missing_ratio, r.seed)
-        for r in study_runs(models, ratios, seeds)
+        (r.name, r.setting, r.model, r.missing_ratio, r.seed, r.steps)
+        for r in study_runs(models, ratios, seeds, lengths)
     ]
-    found = [(r["name"], r["setting"], r["model"], r["missing_ratio"], r["seed"]) for r in runs]
+    found = [
+        (r["name"], r["setting"], r["model"], r["missing_ratio"], r["seed"], r.get("steps"))
+        for r in runs
+    ]
     _need(
         found == expected,
         "the runs are not those of a study of their models, ratios and seeds "

@@ -30,15 +30,19 @@ STUDY_SEEDS = (0, 1, 2)
 
 
 # The largest study pfnet runs, and so the largest results.json it reads back: up to ten
-# times the default seeds and three times the default ratios. With every model that is
-# (5 + 9 - 1) settings × 30 seeds = 390 runs, a record of a few MB.
+# times the default seeds, three times the default ratios and four run lengths (--steps).
+# With every model that is (5 + 9 - 1) settings × 30 seeds × 4 lengths = 1,560 runs, a
+# record of some MB.
 MAX_SEEDS = 10 * len(STUDY_SEEDS)
 
 
 MAX_RATIOS = 3 * len(STUDY_RATIOS)
 
 
-MAX_RUNS = (len(STUDY_MODELS) + MAX_RATIOS - 1) * MAX_SEEDS
+MAX_LENGTHS = 4
+
+
+MAX_RUNS = (len(STUDY_MODELS) + MAX_RATIOS - 1) * MAX_SEEDS * MAX_LENGTHS
 
 
 # The schedule of each preset in the study. ``paper`` is the authors' (200 epochs, StepLR 40,
@@ -57,6 +61,13 @@ STUDY_SCHEDULES: dict[str, dict[str, Any]] = {
 PLATEAU_TOLERANCE = 0.02
 
 
+# The twice-the-steps test of a study sized in steps (``--steps N 2N``): a setting counts as
+# converged at N steps when its run of 2N steps is not better on validation (best CD-L2) by
+# more than this fraction. A learning rate decayed to nothing flattens any curve, so the
+# plateau of one run's curve is not enough; a longer run with the same schedule is.
+CONVERGENCE_TOLERANCE = 0.03
+
+
 PUBLISHED_RUN_FILES = ("config.json", "log.jsonl", "eval-missing.json", "eval-whole.json")
 
 
@@ -68,16 +79,20 @@ class StudyRun:
         model: Generator name.
         missing_ratio: Fraction of each cloud removed by the crop.
         seed: Training seed (initialisation, shuffling, crops).
+        steps: Length of the run in optimiser steps (``None``: the schedule's epochs).
     """
 
     model: str
     missing_ratio: float
     seed: int = 0
+    steps: int | None = None
 
     @property
     def setting(self) -> str:
-        """The model and ratio, shared by the seeds of one setting, e.g. ``pfnet-25``."""
-        return f"{self.model}-{round(self.missing_ratio * 100)}"
+        """The model, ratio and length shared by the seeds of one setting, e.g. ``pfnet-25``
+        (or ``pfnet-25-8000steps`` in a study sized in steps)."""
+        name = f"{self.model}-{round(self.missing_ratio * 100)}"
+        return name if self.steps is None else f"{name}-{self.steps}steps"
 
     @property
     def name(self) -> str:
@@ -86,17 +101,24 @@ class StudyRun:
 
 
 def study_runs(
-    models: Sequence[str], ratios: Sequence[float], seeds: Sequence[int] = (0,)
+    models: Sequence[str],
+    ratios: Sequence[float],
+    seeds: Sequence[int] = (0,),
+    lengths: Sequence[int | None] = (None,),
 ) -> list[StudyRun]:
-    """The runs, seed by seed: every model at 25 % missing, then PF-Net at the other ratios.
+    """The runs, seed by seed and length by length: every model at 25 % missing, then PF-Net
+    at the other ratios.
 
     Seeds come outermost, so a study stopped early has whole seeds rather than whole models.
+    ``lengths`` are the run lengths in steps (``None``: the schedule's epochs); a study sized
+    in steps trains every setting at each length, for the twice-the-steps test.
     """
     runs = []
     for seed in seeds:
-        runs += [StudyRun(m, BASE_RATIO, seed) for m in models]
-        if "pfnet" in models:
-            runs += [StudyRun("pfnet", r, seed) for r in ratios if r != BASE_RATIO]
+        for steps in lengths:
+            runs += [StudyRun(m, BASE_RATIO, seed, steps) for m in models]
+            if "pfnet" in models:
+                runs += [StudyRun("pfnet", r, seed, steps) for r in ratios if r != BASE_RATIO]
     return runs
 
 
@@ -150,14 +172,43 @@ def study_config(preset: str, **overrides: Any) -> Any:
     return preset_config(preset).replace(**changes)
 
 
+def run_config(run: StudyRun, base: Any) -> Any:
+    """The configuration of ``run``: the study's shared one with its model, ratio, seed and
+    length."""
+    config = base.replace(model=run.model, missing_ratio=run.missing_ratio, seed=run.seed)
+    return config if run.steps is None else config.replace(steps=run.steps)
+
+
+def _finished(run_dir: Path, config: Any) -> bool:
+    """Whether the log of ``run_dir`` reaches the end of ``config``'s run."""
+    if config.steps is None:
+        return completed_epochs(run_dir) >= config.epochs
+    rows = read_log(run_dir) if (run_dir / "log.jsonl").is_file() else []
+    return bool(rows) and isinstance(rows[-1].get("step"), int) and rows[-1]["step"] >= config.steps
+
+
 def train_run(
-    run: StudyRun, base: Any, data_dir: Path, run_dir: Path, device: str, log: Callable
+    run: StudyRun,
+    base: Any,
+    data_dir: Path,
+    run_dir: Path,
+    device: str,
+    log: Callable,
+    train_data: Path | None = None,
+    progress: bool | None = None,
 ) -> None:
-    """Train ``run`` to ``base.epochs``, resuming or skipping what an earlier call did."""
+    """Train ``run`` to the end of its schedule, resuming or skipping what an earlier call did.
+
+    With ``train_data``, the run trains on that data set's train split and validates on
+    ``data_dir``'s val split (as ``pfnet train --val-data``).
+    """
     from pfnet.training import train
     from pfnet.training.config import RESUMABLE_FIELDS
 
-    config = base.replace(model=run.model, missing_ratio=run.missing_ratio, seed=run.seed)
+    config = run_config(run, base)
+    sources = {} if train_data is None else {"val_data": data_dir}
+    data_dir = data_dir if train_data is None else train_data
+    length = f"{config.epochs} epochs" if config.steps is None else f"{config.steps} steps"
     done = completed_epochs(run_dir)
     if (run_dir / "last.pt").is_file():
         try:
@@ -174,14 +225,17 @@ def train_run(
                 f"{run_dir} holds a run with another configuration; delete it or choose "
                 "another results folder"
             )
-        if done >= config.epochs and not _interrupted(run_dir):
-            log(f"{run.name}: already trained ({done} epochs)")
+        if _finished(run_dir, config) and not _interrupted(run_dir):
+            log(f"{run.name}: already trained ({length})")
             return
-        log(f"{run.name}: resuming at epoch {done + 1} of {config.epochs}")
-        summary = train(config, data_dir, run_dir, device=device, resume=True)
+        of = config.epochs if config.steps is None else f"a run of {length}"
+        log(f"{run.name}: resuming at epoch {done + 1} of {of}")
+        summary = train(
+            config, data_dir, run_dir, device=device, resume=True, progress=progress, **sources
+        )
     else:
-        log(f"{run.name}: training {config.epochs} epochs on {device}")
-        summary = train(config, data_dir, run_dir, device=device)
+        log(f"{run.name}: training {length} on {device}")
+        summary = train(config, data_dir, run_dir, device=device, progress=progress, **sources)
     if summary["interrupted"]:
         raise KeyboardInterrupt
 
@@ -225,6 +279,7 @@ def evaluate_run(run: StudyRun, data_dir: Path, run_dir: Path, device: str) -> d
         "model": run.model,
         "missing_ratio": run.missing_ratio,
         "seed": run.seed,
+        **({} if run.steps is None else {"steps": run.steps}),
         "n_missing": missing_count(n_points, run.missing_ratio),
         "parameters": int(sum(p.numel() for p in model.parameters())),
         # Measured wall time, and the median epoch: robust to other load on the machine.
