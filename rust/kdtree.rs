@@ -159,7 +159,8 @@ impl Hull {
             axes,
             lo,
             hi,
-            shrink: (1.0 - 1e-12) / norm,
+            // Less the relative rounding of the sum of squares in `lower` (a few 2⁻⁵³).
+            shrink: (1.0 - 1e-13) / norm,
             tight: (axes == IDENTITY).then(|| Bounds::of(entries)),
         }
     }
@@ -168,9 +169,16 @@ impl Hull {
     /// [`Hull::lower`]`(q64)`.
     #[inline]
     fn admits(&self, best: &Nearest, q: &[f32; 3], q64: &[f64; 3], lower: f64) -> bool {
+        if !best.may_improve(lower) {
+            return false;
+        }
         match &self.tight {
-            Some(tight) => best.may_be_in_cell(q, q64, &tight.closest(q)),
-            None => best.may_improve(lower),
+            // Only near a tie: converting subnormal coordinates to float64 costs.
+            Some(tight) if !best.surely_improves(lower) => {
+                let closest = tight.closest(q);
+                best.may_be_in_box(q, sq_dist_f64(q64, &closest), &closest)
+            }
+            _ => true,
         }
     }
 
@@ -381,17 +389,29 @@ impl Nearest {
     #[inline]
     fn may_be_in_cell(&self, q: &[f32; 3], q64: &[f64; 3], closest: &[f32; 3]) -> bool {
         let lower = sq_dist_f64(q64, closest);
-        if !self.may_improve(lower) {
-            return false;
-        }
+        self.may_improve(lower) && self.may_be_in_box(q, lower, closest)
+    }
+
+    /// The exact part of [`Self::may_be_in_cell`], for a box `lower` away in float64 (up to
+    /// rounding) that passed [`Self::may_improve`]`(lower)`, with `closest` its point closest
+    /// to `q`.
+    #[inline]
+    fn may_be_in_box(&self, q: &[f32; 3], lower: f64, closest: &[f32; 3]) -> bool {
         // The float32 distance of `closest` is surely below the best's: no need to compute it
         // (which costs on subnormal coordinates).
-        if lower * (1.0 + F32_RELATIVE_ERROR) + F32_UNDERFLOW < f64::from(self.sq_dist) {
+        if self.surely_improves(lower) {
             return true;
         }
         let d = sq_dist_f32(q, closest);
         d < self.sq_dist
             || (d == self.sq_dist && lower * (1.0 - F64_RELATIVE_ERROR) <= self.sq_dist_f64)
+    }
+
+    /// Whether every float32 distance at float64 distance `lower` (up to rounding) is below the
+    /// best's.
+    #[inline]
+    fn surely_improves(&self, lower: f64) -> bool {
+        lower * (1.0 + F32_RELATIVE_ERROR) + F32_UNDERFLOW < f64::from(self.sq_dist)
     }
 
     /// Take the point `r` of `item`, at float32 distance `d` no larger than the best's, if it
