@@ -131,6 +131,20 @@ def degenerate_pair(layout: str, n: int = 100_000) -> tuple[np.ndarray, np.ndarr
     if layout == "tiny":  # float32 squared distances underflow to 0
         tiny = (rng.random((n, 3)) * 1e-25).astype(np.float32)
         return tiny, tiny
+    # Audit 9 (G2): oblique layouts and far clusters were quadratic in pfnet's first own tree
+    # (1M points: 54 s for the noisy line, 46 s for the plane) until its oriented hulls.
+    if layout == "oblique line, noisy queries":
+        t = rng.random(n)
+        line = np.c_[t, t, t].astype(np.float32)
+        return (line + rng.normal(0, 0.01, (n, 3))).astype(np.float32), line
+    if layout == "oblique plane, cube queries":
+        a, b = rng.random(n), rng.random(n)
+        plane = np.c_[a, b, 1 - a - b].astype(np.float32)
+        return rng.random((n, 3)).astype(np.float32), plane
+    if layout == "two far tiny clusters":
+        cluster = (rng.random((n, 3)) * 1e-6).astype(np.float32)
+        cluster[n // 2 :] += np.float32(1e6)
+        return rng.random((n, 3)).astype(np.float32) * np.float32(1e6), cluster
     subnormal = (rng.random((n, 3)) * 1e-40).astype(np.float32)
     subnormal[-1] = 1e17
     return subnormal, subnormal
@@ -140,10 +154,18 @@ def ckdtree_nearest(query, reference):
     return cKDTree(reference).query(query, k=1, workers=-1)
 
 
-DEGENERATE = ["collinear", "far queries", "tiny", "subnormal and one huge point"]
+DEGENERATE = [
+    "collinear",
+    "far queries",
+    "tiny",
+    "subnormal and one huge point",
+    "oblique line, noisy queries",
+    "oblique plane, cube queries",
+    "two far tiny clusters",
+]
 
 
-# Before issue 14 pfnet took 1.4 s, 2.0 s, 10 s and 19 s on these (scipy 0.04-0.1 s).
+# Before issue 14 pfnet took 1.4 s, 2.0 s, 10 s and 19 s on the first four (scipy 0.04-0.1 s).
 @pytest.mark.parametrize("layout", DEGENERATE)
 @pytest.mark.parametrize("tool", ["pfnet", "scipy-ckdtree"])
 def test_nearest_degenerate(benchmark, layout, tool):

@@ -13,8 +13,22 @@
 //!
 //! This tree splits each node at the median of its widest extent, so its depth is ⌈log₂(n/16)⌉
 //! whatever the layout. Its cells are the cloud's bounding box cut by the splitting planes, and
-//! it prunes with the squared distance from the query to the cell, kept per axis and summed in
-//! float64 (which neither underflows nor overflows for float32 coordinates).
+//! it prunes with the point of the cell closest to the query: its float32 distance is an exact
+//! lower bound on the float32 distance of every point of the cell (see
+//! [`Nearest::may_be_in_cell`]), and its float64 distance one on their float64 distance.
+//!
+//! A cell can be much larger than its points: on a line or plane oblique to the axes, a leaf's
+//! cell stays open along the line or plane, and a small cluster far from the rest of the cloud
+//! has a cell reaching across the gap. Pruning by cells alone then visits O(n) leaves per query
+//! (audit 9, G2: 54 s for the Chamfer distance of 1M points along x = y = z). So a node whose
+//! points are much thinner along some oblique direction than along the axes (from the moments of
+//! its points, merged up the tree), or much smaller than its cell, also keeps a [`Hull`]: an
+//! oriented box along the principal axes of its points, or its tight box. Where both children
+//! of a node have one, the search visits the child with the nearer hull first. Tight boxes alone
+//! are not enough on an oblique plane: a query at distance h from the plane is within reach of
+//! every box whose corner comes within h, about h / (leaf size) leaves, so O(√n); an oriented box
+//! of a patch of the plane is flat and the search visits a handful of leaves. On spread clouds
+//! almost no node has a hull and the search is the plain one.
 //!
 //! The answer is defined by the float32 distance callers see, `dx*dx + dy*dy + dz*dz` in that
 //! order: the point with the smallest one; among equal float32 distances the nearest in float64;
@@ -75,22 +89,236 @@ impl Bounds {
         (1..3).fold(0, |w, d| if extent(d) > extent(w) { d } else { w })
     }
 
-    /// Per axis, the distance from `q` to the box (0 inside it).
-    fn offsets(&self, q: &[f64; 3]) -> [f64; 3] {
-        [0, 1, 2].map(|d| {
-            (f64::from(self.lo[d]) - q[d])
-                .max(q[d] - f64::from(self.hi[d]))
-                .max(0.0)
-        })
+    /// The point of the box closest to `q`.
+    #[inline]
+    fn closest(&self, q: &[f32; 3]) -> [f32; 3] {
+        [0, 1, 2].map(|d| q[d].max(self.lo[d]).min(self.hi[d]))
     }
 }
 
 /// An internal node: points with `coordinate[axis] < value` lie left, `> value` right, equal
-/// ones on either side.
+/// ones on either side. `tag` holds `axis` in its two low bits, [`HAS_HULL`] when the node
+/// has a [`Hull`] and [`CHILD_HULLS`] when both its children have one.
 #[derive(Clone, Copy, Default)]
 struct Split {
     value: f32,
-    axis: u32,
+    tag: u32,
+}
+
+const AXIS_MASK: u32 = 3;
+const HAS_HULL: u32 = 4;
+/// Both children are internal nodes with hulls.
+const CHILD_HULLS: u32 = 8;
+
+/// The relative error bound of `u · (p − c)` in float64 for `|u|` ≤ 1 + 2⁻⁴⁰: about
+/// 4·2⁻⁵³·Σ|pₖ − cₖ|, doubled and rounded up.
+const HULL_ERROR: f64 = 1.0 / (1u64 << 49) as f64;
+
+/// An oriented bounding box of a node's points, kept for the nodes whose cell is a poor bound:
+/// flat or thin nodes oblique to the axes (a patch of an oblique plane or line), whose box along
+/// their principal axes is much thinner than their cell, and nodes much smaller than their cell
+/// (a small cluster far from the rest), with the coordinate axes.
+///
+/// `axes` are nearly orthonormal; along each, every point `p` of the node satisfies
+/// `lo ≤ axis · (p − centre) ≤ hi` exactly (the bounds are widened by the rounding of the
+/// float64 products). A query `q` then lies at least `dist(axis · (q − centre), [lo, hi])` from
+/// the node along each axis, less the rounding of that product, and the squared distance from `q`
+/// to any point is at least the sum of these squares times `shrink`, which bounds
+/// 1 / ‖axes‖₂² (so that axes that are not exactly orthonormal still give a lower bound).
+#[derive(Clone)]
+struct Hull {
+    centre: [f64; 3],
+    axes: [[f64; 3]; 3],
+    lo: [f64; 3],
+    hi: [f64; 3],
+    shrink: f64,
+    /// With the coordinate axes, the box itself, for the exact bound of
+    /// [`Nearest::may_be_in_cell`].
+    tight: Option<Bounds>,
+}
+
+impl Hull {
+    /// Around `entries`, with `axes` (rows, nearly orthonormal).
+    fn new(entries: &[Entry], centre: [f64; 3], axes: [[f64; 3]; 3]) -> Self {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for e in entries {
+            let w = [0, 1, 2].map(|d| f64::from(e.point[d]) - centre[d]);
+            let err = HULL_ERROR * (w[0].abs() + w[1].abs() + w[2].abs());
+            for i in 0..3 {
+                let t = dot(&axes[i], &w);
+                lo[i] = lo[i].min(t - err);
+                hi[i] = hi[i].max(t + err);
+            }
+        }
+        // ‖U‖₂² ≤ ‖U Uᵀ‖∞, each Gram entry computed within a few 2⁻⁵³.
+        let gram_row = |i: usize| (0..3).map(move |j| dot(&axes[i], &axes[j]).abs() + 1e-15);
+        let norm = (0..3).map(|i| gram_row(i).sum::<f64>()).fold(0.0, f64::max);
+        Hull {
+            centre,
+            axes,
+            lo,
+            hi,
+            // Less the relative rounding of the sum of squares in `lower` (a few 2⁻⁵³).
+            shrink: (1.0 - 1e-13) / norm,
+            tight: (axes == IDENTITY).then(|| Bounds::of(entries)),
+        }
+    }
+
+    /// Whether the node may hold a point that comes before `best`, given `lower` =
+    /// [`Hull::lower`]`(q64)`.
+    #[inline]
+    fn admits(&self, best: &Nearest, q: &[f32; 3], q64: &[f64; 3], lower: f64) -> bool {
+        if !best.may_improve(lower) {
+            return false;
+        }
+        match &self.tight {
+            // Only near a tie: converting subnormal coordinates to float64 costs.
+            Some(tight) if !best.surely_improves(lower) => {
+                let closest = tight.closest(q);
+                best.may_be_in_box(q, sq_dist_f64(q64, &closest), &closest)
+            }
+            _ => true,
+        }
+    }
+
+    /// A lower bound on the float64 squared distance from `q` to the node's points, up to the
+    /// few 2⁻⁵³ of rounding [`Nearest::may_improve`] allows for.
+    #[inline]
+    fn lower(&self, q: &[f64; 3]) -> f64 {
+        let w = [0, 1, 2].map(|d| q[d] - self.centre[d]);
+        let err = HULL_ERROR * (w[0].abs() + w[1].abs() + w[2].abs());
+        let mut sum = 0.0;
+        for i in 0..3 {
+            let t = dot(&self.axes[i], &w);
+            let gap = ((self.lo[i] - t).max(t - self.hi[i]) - err).max(0.0);
+            sum += gap * gap;
+        }
+        sum * self.shrink
+    }
+}
+
+const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+
+#[inline]
+fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// The count, mean and scatter matrix (sum of outer products of deviations) of a node's points,
+/// merged up the tree.
+#[derive(Clone, Copy)]
+struct Moments {
+    n: f64,
+    mean: [f64; 3],
+    scatter: [[f64; 3]; 3],
+}
+
+impl Moments {
+    fn of(entries: &[Entry]) -> Self {
+        let n = entries.len() as f64;
+        let mut mean = [0.0; 3];
+        for e in entries {
+            for (m, &c) in mean.iter_mut().zip(&e.point) {
+                *m += f64::from(c);
+            }
+        }
+        mean = mean.map(|m| m / n);
+        let mut scatter = [[0.0; 3]; 3];
+        for e in entries {
+            let w = [0, 1, 2].map(|d| f64::from(e.point[d]) - mean[d]);
+            for a in 0..3 {
+                for b in 0..3 {
+                    scatter[a][b] += w[a] * w[b];
+                }
+            }
+        }
+        Moments { n, mean, scatter }
+    }
+
+    /// Of the union of two disjoint sets (Chan, Golub and LeVeque).
+    fn merge(&self, other: &Moments) -> Self {
+        let n = self.n + other.n;
+        let delta = [0, 1, 2].map(|d| other.mean[d] - self.mean[d]);
+        let mean = [0, 1, 2].map(|d| self.mean[d] + delta[d] * (other.n / n));
+        let weight = self.n * other.n / n;
+        let mut scatter = [[0.0; 3]; 3];
+        for a in 0..3 {
+            for b in 0..3 {
+                scatter[a][b] =
+                    self.scatter[a][b] + other.scatter[a][b] + delta[a] * delta[b] * weight;
+            }
+        }
+        Moments { n, mean, scatter }
+    }
+
+    /// Whether the points are much thinner along some direction than along every coordinate
+    /// axis: some pair of coordinates nearly correlated, or the scatter matrix nearly singular
+    /// against its diagonal (Hadamard's inequality makes the ratio at most 1).
+    fn oblique_thin(&self) -> bool {
+        let s = &self.scatter;
+        let pairs = [(0, 1), (0, 2), (1, 2)];
+        let correlated = pairs.iter().any(|&(a, b)| {
+            s[a][b] * s[a][b] > 0.9 * (s[a][a] * s[b][b]) && s[a][a] * s[b][b] > 0.0
+        });
+        let diagonal = s[0][0] * s[1][1] * s[2][2];
+        let det = s[0][0] * (s[1][1] * s[2][2] - s[1][2] * s[1][2])
+            - s[0][1] * (s[0][1] * s[2][2] - s[1][2] * s[0][2])
+            + s[0][2] * (s[0][1] * s[1][2] - s[1][1] * s[0][2]);
+        correlated || (diagonal > 0.0 && det < 0.1 * diagonal)
+    }
+}
+
+/// The principal axes of a symmetric 3×3 matrix (cyclic Jacobi), as rows made orthonormal by
+/// Gram–Schmidt; the coordinate axes if that fails.
+fn principal_axes(mut a: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let identity = IDENTITY;
+    // Columns of `v` are the eigenvectors.
+    let mut v = identity;
+    for _ in 0..16 {
+        let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
+        let diag = a[0][0] * a[0][0] + a[1][1] * a[1][1] + a[2][2] * a[2][2];
+        // Also stops on NaN.
+        if off.partial_cmp(&(1e-30 * diag)) != Some(std::cmp::Ordering::Greater) {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            if a[p][q] == 0.0 {
+                continue;
+            }
+            let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+            let t = if theta == 0.0 { 1.0 } else { t };
+            let c = 1.0 / (t * t + 1.0).sqrt();
+            let s = t * c;
+            for row in &mut a {
+                let (akp, akq) = (row[p], row[q]);
+                row[p] = c * akp - s * akq;
+                row[q] = s * akp + c * akq;
+            }
+            let (row_p, row_q) = (a[p], a[q]);
+            a[p] = [0, 1, 2].map(|k| c * row_p[k] - s * row_q[k]);
+            a[q] = [0, 1, 2].map(|k| s * row_p[k] + c * row_q[k]);
+            for row in &mut v {
+                let (vp, vq) = (row[p], row[q]);
+                row[p] = c * vp - s * vq;
+                row[q] = s * vp + c * vq;
+            }
+        }
+    }
+    let mut axes = [0, 1, 2].map(|i| [v[0][i], v[1][i], v[2][i]]);
+    for i in 0..3 {
+        for j in 0..i {
+            let along = dot(&axes[i], &axes[j]);
+            axes[i] = [0, 1, 2].map(|d| axes[i][d] - along * axes[j][d]);
+        }
+        let norm = dot(&axes[i], &axes[i]).sqrt();
+        if norm.partial_cmp(&0.5) != Some(std::cmp::Ordering::Greater) {
+            return identity;
+        }
+        axes[i] = axes[i].map(|x| x / norm);
+    }
+    axes
 }
 
 /// A leaf's points by axis, padded with NaN (whose distance compares false with everything) so
@@ -127,11 +355,6 @@ fn sq_dist_f64(q: &[f64; 3], r: &[f32; 3]) -> f64 {
     dx * dx + dy * dy + dz * dz
 }
 
-#[inline]
-fn norm2(offsets: &[f64; 3]) -> f64 {
-    offsets[0] * offsets[0] + offsets[1] * offsets[1] + offsets[2] * offsets[2]
-}
-
 /// The best answer so far of one query.
 struct Nearest {
     sq_dist: f32,
@@ -152,6 +375,43 @@ impl Nearest {
         let lower_f32 = (lower * (1.0 - F32_RELATIVE_ERROR) - F32_UNDERFLOW).max(0.0);
         lower_f32 < best
             || (lower_f32 <= best && lower * (1.0 - F64_RELATIVE_ERROR) <= self.sq_dist_f64)
+    }
+
+    /// Whether a cell whose point closest to the query is `closest` may hold a point that comes
+    /// before the best so far.
+    ///
+    /// This bound is exact in float32: the float32 distance `dx*dx + dy*dy + dz*dz` only grows
+    /// with each `|q − r|` (every rounding is monotonic and symmetric), so no point of the cell
+    /// has a smaller one than `closest`. With an equal one, a point comes first only if its
+    /// float64 distance, at least the cell's up to rounding, is no larger than the best's. An
+    /// exact bound matters when a query is far from a small node: all its points may then tie in
+    /// float32 and only float64 tells them apart.
+    #[inline]
+    fn may_be_in_cell(&self, q: &[f32; 3], q64: &[f64; 3], closest: &[f32; 3]) -> bool {
+        let lower = sq_dist_f64(q64, closest);
+        self.may_improve(lower) && self.may_be_in_box(q, lower, closest)
+    }
+
+    /// The exact part of [`Self::may_be_in_cell`], for a box `lower` away in float64 (up to
+    /// rounding) that passed [`Self::may_improve`]`(lower)`, with `closest` its point closest
+    /// to `q`.
+    #[inline]
+    fn may_be_in_box(&self, q: &[f32; 3], lower: f64, closest: &[f32; 3]) -> bool {
+        // The float32 distance of `closest` is surely below the best's: no need to compute it
+        // (which costs on subnormal coordinates).
+        if self.surely_improves(lower) {
+            return true;
+        }
+        let d = sq_dist_f32(q, closest);
+        d < self.sq_dist
+            || (d == self.sq_dist && lower * (1.0 - F64_RELATIVE_ERROR) <= self.sq_dist_f64)
+    }
+
+    /// Whether every float32 distance at float64 distance `lower` (up to rounding) is below the
+    /// best's.
+    #[inline]
+    fn surely_improves(&self, lower: f64) -> bool {
+        lower * (1.0 + F32_RELATIVE_ERROR) + F32_UNDERFLOW < f64::from(self.sq_dist)
     }
 
     /// Take the point `r` of `item`, at float32 distance `d` no larger than the best's, if it
@@ -175,6 +435,8 @@ impl Nearest {
 pub(crate) struct KdTree {
     bounds: Bounds,
     splits: Vec<Split>,
+    /// By internal node, its hull if its `Split` has [`HAS_HULL`].
+    hulls: Vec<Option<Box<Hull>>>,
     leaves: Vec<Leaf>,
 }
 
@@ -187,11 +449,18 @@ impl KdTree {
         }
         let bounds = Bounds::of(&entries);
         let mut splits = vec![Split::default(); (1usize << levels) - 1];
+        let mut hulls: Vec<Option<Box<Hull>>> = vec![None; splits.len()];
         let mut leaves = vec![Leaf::default(); 1usize << levels];
-        build(&mut entries, &mut splits, &mut leaves, parallel);
+        let mut nodes = Nodes {
+            splits: &mut splits,
+            hulls: &mut hulls,
+            leaves: &mut leaves,
+        };
+        build(&mut entries, &mut nodes, bounds, parallel);
         KdTree {
             bounds,
             splits,
+            hulls,
             leaves,
         }
     }
@@ -206,14 +475,15 @@ impl KdTree {
             item: u32::MAX,
         };
         let q64 = q.map(f64::from);
-        let offsets = self.bounds.offsets(&q64);
-        self.search(0, self.splits.len(), 0, q, &q64, offsets, &mut best);
+        let closest = self.bounds.closest(q);
+        self.search(0, self.splits.len(), 0, q, &q64, closest, false, &mut best);
         (best.sq_dist, best.item)
     }
 
     /// Search the subtree at internal node `node` (`span` internal nodes; none for a leaf) whose
-    /// leaves start at `leaf`, the query's side first. `offsets` are the per-axis distances from
-    /// the query to the subtree's cell, and the caller has checked that cell against `best`.
+    /// leaves start at `leaf`, the query's side first. `closest` is the point of the subtree's
+    /// cell closest to the query; the caller has checked that cell against `best`, and the
+    /// node's hull too if `hull_checked`.
     #[allow(clippy::too_many_arguments)]
     fn search(
         &self,
@@ -222,30 +492,100 @@ impl KdTree {
         leaf: usize,
         q: &[f32; 3],
         q64: &[f64; 3],
-        offsets: [f64; 3],
+        closest: [f32; 3],
+        hull_checked: bool,
         best: &mut Nearest,
     ) {
         if span == 0 {
             self.scan(&self.leaves[leaf], q, q64, best);
             return;
         }
-        let Split { value, axis } = self.splits[node];
-        let (axis, value) = (axis as usize, f64::from(value));
+        let Split { value, tag } = self.splits[node];
+        if tag & (HAS_HULL | CHILD_HULLS) != 0 {
+            let split = Split { value, tag };
+            self.search_hulls(node, span, leaf, q, q64, closest, hull_checked, split, best);
+            return;
+        }
+        let axis = (tag & AXIS_MASK) as usize;
         let half = span / 2;
         let left = (node + 1, leaf);
         let right = (node + 1 + half, leaf + half + 1);
-        let (near, far) = if q64[axis] < value {
+        let (near, far) = if q[axis] < value {
             (left, right)
         } else {
             (right, left)
         };
-        // The near child's cell is as far from the query as this one.
-        self.search(near.0, half, near.1, q, q64, offsets, best);
-        // The far child's cell is `|q − value|` away along `axis`.
-        let gap = (q64[axis] - value).abs();
-        let far_offsets = [0, 1, 2].map(|d| if d == axis { gap } else { offsets[d] });
-        if best.may_improve(norm2(&far_offsets)) {
-            self.search(far.0, half, far.1, q, q64, far_offsets, best);
+        self.search(near.0, half, near.1, q, q64, closest, false, best);
+        // The near child's cell has the same point closest to the query as this one; the far
+        // child's has `value` along `axis`.
+        let mut far_closest = closest;
+        far_closest[axis] = value;
+        if best.may_be_in_cell(q, q64, &far_closest) {
+            self.search(far.0, half, far.1, q, q64, far_closest, false, best);
+        }
+    }
+
+    /// [`Self::search`] at a node with a hull or whose children have hulls (out of line, to keep
+    /// the common path small): check the node's hull unless `hull_checked`, and visit the
+    /// child with the nearer hull first when both have one.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(never)]
+    fn search_hulls(
+        &self,
+        node: usize,
+        span: usize,
+        leaf: usize,
+        q: &[f32; 3],
+        q64: &[f64; 3],
+        closest: [f32; 3],
+        hull_checked: bool,
+        Split { value, tag }: Split,
+        best: &mut Nearest,
+    ) {
+        if tag & HAS_HULL != 0 && !hull_checked {
+            if let Some(hull) = &self.hulls[node] {
+                if !hull.admits(best, q, q64, hull.lower(q64)) {
+                    return;
+                }
+            }
+        }
+        let axis = (tag & AXIS_MASK) as usize;
+        let half = span / 2;
+        let left = (node + 1, leaf);
+        let right = (node + 1 + half, leaf + half + 1);
+        let (near, far) = if q[axis] < value {
+            (left, right)
+        } else {
+            (right, left)
+        };
+        let mut far_closest = closest;
+        far_closest[axis] = value;
+        if tag & CHILD_HULLS != 0 {
+            if let (Some(near_hull), Some(far_hull)) = (&self.hulls[near.0], &self.hulls[far.0]) {
+                // On an oblique line or plane the query's side of the split may lie far from its
+                // nearest points.
+                let near_lower = near_hull.lower(q64);
+                let far_lower = far_hull.lower(q64);
+                let mut order = [
+                    (near, closest, near_hull, near_lower),
+                    (far, far_closest, far_hull, far_lower),
+                ];
+                if far_lower.max(sq_dist_f64(q64, &far_closest)) < near_lower {
+                    order.swap(0, 1);
+                }
+                for ((child, child_leaf), child_closest, hull, lower) in order {
+                    if best.may_be_in_cell(q, q64, &child_closest)
+                        && hull.admits(best, q, q64, lower)
+                    {
+                        self.search(child, half, child_leaf, q, q64, child_closest, true, best);
+                    }
+                }
+                return;
+            }
+        }
+        self.search(near.0, half, near.1, q, q64, closest, false, best);
+        if best.may_be_in_cell(q, q64, &far_closest) {
+            self.search(far.0, half, far.1, q, q64, far_closest, false, best);
         }
     }
 
@@ -287,38 +627,164 @@ impl KdTree {
     }
 }
 
-/// Order `entries` as the subtree over them, filling its internal nodes `splits` (pre-order)
-/// and its `leaves`.
-fn build(entries: &mut [Entry], splits: &mut [Split], leaves: &mut [Leaf], parallel: bool) {
-    if splits.is_empty() {
-        let leaf = &mut leaves[0];
+/// The parts of a subtree: its internal nodes and their hulls in pre-order, and its leaves.
+struct Nodes<'a> {
+    splits: &'a mut [Split],
+    hulls: &'a mut [Option<Box<Hull>>],
+    leaves: &'a mut [Leaf],
+}
+
+impl Nodes<'_> {
+    /// This node's split and hull, and the left and right subtrees.
+    #[allow(clippy::type_complexity)]
+    fn split(&mut self) -> (&mut Split, &mut Option<Box<Hull>>, Nodes<'_>, Nodes<'_>) {
+        let half = self.splits.len() / 2;
+        let (split, splits) = self.splits.split_first_mut().expect("an internal node");
+        let (hull, hulls) = self.hulls.split_first_mut().expect("an internal node");
+        let (left_splits, right_splits) = splits.split_at_mut(half);
+        let (left_hulls, right_hulls) = hulls.split_at_mut(half);
+        let (left_leaves, right_leaves) = self.leaves.split_at_mut(half + 1);
+        (
+            split,
+            hull,
+            Nodes {
+                splits: left_splits,
+                hulls: left_hulls,
+                leaves: left_leaves,
+            },
+            Nodes {
+                splits: right_splits,
+                hulls: right_hulls,
+                leaves: right_leaves,
+            },
+        )
+    }
+}
+
+/// Order `entries` as the subtree over them, filling its internal nodes (pre-order), their
+/// hulls and its leaves; `cell` is the subtree's cell. Returns the moments of its points.
+fn build(entries: &mut [Entry], nodes: &mut Nodes, cell: Bounds, parallel: bool) -> Moments {
+    if nodes.splits.is_empty() {
+        let leaf = &mut nodes.leaves[0];
         for (k, e) in entries.iter().enumerate() {
             for d in 0..3 {
                 leaf.coords[d][k] = e.point[d];
             }
             leaf.items[k] = e.item;
         }
-        return;
+        return Moments::of(entries);
     }
-    let axis = Bounds::of(entries).widest();
+    let tight = Bounds::of(entries);
+    let axis = tight.widest();
     let split_here = parallel && entries.len() >= PARALLEL_MIN_BUILD;
     let mid = entries.len() / 2;
     entries.select_nth_unstable_by(mid, |a, b| a.point[axis].total_cmp(&b.point[axis]));
-    splits[0] = Split {
-        value: entries[mid].point[axis],
-        axis: axis as u32,
-    };
+    let value = entries[mid].point[axis];
+    let (mut left_cell, mut right_cell) = (cell, cell);
+    left_cell.hi[axis] = value;
+    right_cell.lo[axis] = value;
+    let (split, hull, mut left_nodes, mut right_nodes) = nodes.split();
     let (left, right) = entries.split_at_mut(mid);
-    let half = splits.len() / 2;
-    let (left_splits, right_splits) = splits[1..].split_at_mut(half);
-    let (left_leaves, right_leaves) = leaves.split_at_mut(half + 1);
-    if split_here {
+    let (l, r) = if split_here {
         rayon::join(
-            || build(left, left_splits, left_leaves, parallel),
-            || build(right, right_splits, right_leaves, parallel),
-        );
+            || build(left, &mut left_nodes, left_cell, parallel),
+            || build(right, &mut right_nodes, right_cell, parallel),
+        )
     } else {
-        build(left, left_splits, left_leaves, false);
-        build(right, right_splits, right_leaves, false);
+        (
+            build(left, &mut left_nodes, left_cell, false),
+            build(right, &mut right_nodes, right_cell, false),
+        )
+    };
+    let moments = l.merge(&r);
+    let axes = if moments.oblique_thin() {
+        Some(principal_axes(moments.scatter))
+    } else if loose(&cell, &tight) {
+        Some(IDENTITY)
+    } else {
+        None
+    };
+    let has_hull = |nodes: &Nodes| nodes.hulls.first().is_some_and(Option::is_some);
+    let child_hulls = has_hull(&left_nodes) && has_hull(&right_nodes);
+    *split = Split {
+        value,
+        tag: axis as u32
+            | if axes.is_some() { HAS_HULL } else { 0 }
+            | if child_hulls { CHILD_HULLS } else { 0 },
+    };
+    *hull = axes.map(|axes| Box::new(Hull::new(entries, moments.mean, axes)));
+    moments
+}
+
+/// Whether the tight box of a node's points leaves a quarter of its cell's largest extent empty
+/// along some axis (a small cluster far from the rest; on spread clouds, almost never).
+fn loose(cell: &Bounds, tight: &Bounds) -> bool {
+    let extent = |b: &Bounds, d: usize| f64::from(b.hi[d]) - f64::from(b.lo[d]);
+    let largest = (0..3).map(|d| extent(cell, d)).fold(0.0, f64::max);
+    (0..3).any(|d| extent(cell, d) - extent(tight, d) > 0.25 * largest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{rngs::StdRng, Rng, SeedableRng};
+
+    #[test]
+    fn hulls_bound_the_distance_to_their_points_from_below() {
+        let mut rng = StdRng::seed_from_u64(3);
+        for scale in [1e-30f32, 1e-3, 1.0, 1e6, 1e17] {
+            let direction: [f32; 3] = [0, 1, 2].map(|_| rng.gen_range(-1.0..1.0));
+            let entries: Vec<Entry> = (0..64)
+                .map(|i| {
+                    let (t, s) = (rng.gen_range(-1.0f32..1.0), rng.gen_range(-1.0f32..1.0));
+                    let point = [0, 1, 2]
+                        .map(|d| scale * (t * direction[d] + 1e-3 * s * (d as f32 - 1.0) + 0.5));
+                    Entry { point, item: i }
+                })
+                .collect();
+            let moments = Moments::of(&entries);
+            for axes in [principal_axes(moments.scatter), IDENTITY] {
+                let hull = Hull::new(&entries, moments.mean, axes);
+                for _ in 0..200 {
+                    let q = [0, 1, 2].map(|_| scale * rng.gen_range(-2.0f32..3.0));
+                    let q64 = q.map(f64::from);
+                    let nearest = entries
+                        .iter()
+                        .map(|e| sq_dist_f64(&q64, &e.point))
+                        .fold(f64::INFINITY, f64::min);
+                    assert!(hull.lower(&q64) <= nearest, "scale {scale}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn oblique_lines_and_planes_get_oriented_hulls_and_spread_clouds_almost_none() {
+        let mut rng = StdRng::seed_from_u64(4);
+        let n = 20_000;
+        let build = |points: Vec<[f32; 3]>| {
+            let entries = points
+                .into_iter()
+                .enumerate()
+                .map(|(i, point)| Entry {
+                    point,
+                    item: i as u32,
+                })
+                .collect();
+            let tree = KdTree::new(entries, false);
+            tree.hulls.iter().filter(|h| h.is_some()).count() as f64 / tree.hulls.len() as f64
+        };
+        let plane = (0..n)
+            .map(|_| {
+                let (a, b) = (rng.gen_range(0.0f32..1.0), rng.gen_range(0.0f32..1.0));
+                [a, b, 1.0 - a - b]
+            })
+            .collect();
+        let spread = (0..n)
+            .map(|_| [0, 1, 2].map(|_| rng.gen_range(0.0f32..1.0)))
+            .collect();
+        assert!(build(plane) > 0.99);
+        let spread = build(spread);
+        assert!(spread < 0.05, "{spread}");
     }
 }

@@ -303,7 +303,9 @@ mod tests {
 
     type Cloud = Vec<[f32; 3]>;
 
-    /// Degenerate layouts that made kiddo's tree quadratic (issue 14): name, reference, queries.
+    /// Degenerate layouts that made kiddo's tree quadratic (issue 14), and the oblique lines and
+    /// planes and far tiny clusters on which cells alone pruned too little (audit 9, G2): name,
+    /// reference, queries.
     fn degenerate_layouts(n: usize) -> Vec<(&'static str, Cloud, Cloud)> {
         let random = cloud(n, 5, false);
         let t: Vec<f32> = (0..n).map(|i| i as f32 / n as f32).collect();
@@ -320,7 +322,60 @@ mod tests {
         let shifted = |c: &[[f32; 3]], by: f32| -> Vec<[f32; 3]> {
             c.iter().map(|p| p.map(|v| v + by)).collect()
         };
+        let cube = cloud(n, 12, false);
+        let x_eq_y_eq_z: Vec<[f32; 3]> = t.iter().map(|&x| [x, x, x]).collect();
+        let noisy_diagonal = cloud(n, 13, false)
+            .iter()
+            .zip(&t)
+            .map(|(p, &x)| p.map(|c| x + 0.01 * c))
+            .collect();
+        let oblique_plane: Vec<[f32; 3]> = random
+            .iter()
+            .map(|p| [p[0], p[1], 1.0 - p[0] - p[1]])
+            .collect();
+        let tilted_plane: Vec<[f32; 3]> = random
+            .iter()
+            .map(|p| [p[0], p[1], 0.3 * p[0] + 0.7 * p[1]])
+            .collect();
+        let far_clusters: Vec<[f32; 3]> = random
+            .iter()
+            .enumerate()
+            .map(|(i, p)| p.map(|c| c * 1e-6 + if i % 2 == 0 { 0.0 } else { 1.0 }))
+            .collect();
+        let clusters_far_apart: Vec<[f32; 3]> = random
+            .iter()
+            .enumerate()
+            .map(|(i, p)| p.map(|c| c * 1e-6 + if i % 2 == 0 { 0.0 } else { 1e6 }))
+            .collect();
+        let far_cube = cube.iter().map(|p| p.map(|c| (c + 1.0) * 5e5)).collect();
         vec![
+            (
+                "oblique line, noisy queries",
+                x_eq_y_eq_z.clone(),
+                noisy_diagonal,
+            ),
+            ("oblique line, queries in a cube", x_eq_y_eq_z, cube.clone()),
+            (
+                "oblique plane, queries in a cube",
+                oblique_plane.clone(),
+                cube.clone(),
+            ),
+            (
+                "oblique plane, queries on it",
+                oblique_plane.clone(),
+                oblique_plane,
+            ),
+            (
+                "tilted plane, queries in a cube",
+                tilted_plane,
+                cube.clone(),
+            ),
+            ("far tiny clusters, queries in a cube", far_clusters, cube),
+            (
+                "tiny clusters 1e6 apart, queries between",
+                clusters_far_apart,
+                far_cube,
+            ),
             ("collinear", collinear.clone(), collinear.clone()),
             (
                 "collinear, queries off the line",

@@ -110,7 +110,29 @@ def _degenerate_layouts(n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     tiny = (rng.random((n, 3)) * 1e-25).astype(np.float32)  # float32 squares underflow to 0
     subnormal = (rng.random((n, 3)) * 1e-40).astype(np.float32)
     subnormal[n // 2] = 1e17
+    # Oblique lines and planes and far tiny clusters, on which cells alone pruned too little and
+    # a query visited O(n) leaves (audit 9, G2).
+    t = rng.random(n)
+    diagonal = np.c_[t, t, t].astype(np.float32)
+    a, b = rng.random(n), rng.random(n)
+    oblique_plane = np.c_[a, b, 1 - a - b].astype(np.float32)
+    cube = rng.random((n, 3)).astype(np.float32)
+    blob = rng.random((n, 3)) * 1e-6
+    far_clusters = (blob + (np.arange(n) % 2)[:, None]).astype(np.float32)
+    apart = (blob + 1e6 * (np.arange(n) % 2)[:, None]).astype(np.float32)
     return {
+        "oblique line, noisy queries": (
+            (diagonal + rng.normal(0, 0.01, (n, 3))).astype(np.float32),
+            diagonal,
+        ),
+        "oblique line, queries in a cube": (cube, diagonal),
+        "oblique plane, queries in a cube": (cube, oblique_plane),
+        "tilted plane, queries in a cube": (
+            cube,
+            np.c_[a, b, 0.3 * a + 0.7 * b].astype(np.float32),
+        ),
+        "far tiny clusters, queries in a cube": (cube, far_clusters),
+        "tiny clusters 1e6 apart, queries between": ((cube * 1e6).astype(np.float32), apart),
         "collinear": (line, line),
         "planar": (planar, planar),
         "far queries": (uniform + np.float32(100), uniform),
