@@ -105,6 +105,8 @@ def check_prediction_folder(
         return []  # new, or files of the user's: predictions are added beside them
     this = {"data": str(Path(data_dir).resolve()), "split": split, "protocol": protocol}
     recorded = _recorded_run(record)
+    if recorded is not None and recorded["data"] is None:  # a record of an older pfnet
+        this["data"] = None
     if recorded == this:
         return []
     if not overwrite:
@@ -161,7 +163,7 @@ def _category_folder(path: Path) -> bool:
 
 def _recorded_run(record: Path) -> dict[str, Any] | None:
     """The data set, split and protocol a ``predictions.json`` records, None if it cannot be
-    read (a record of an older pfnet without them counts as another run)."""
+    read (the data set None in an unfinished record of an older pfnet, which did not name it)."""
     try:
         if not _plain_file(record) or record.stat().st_size > 1 << 20:
             return None
