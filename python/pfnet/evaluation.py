@@ -43,6 +43,10 @@ FAR = 10.0
 SCALE = 1000
 # Threads reading prediction files: more only contend for the disk.
 MAX_WORKERS = 256
+# Points of one scored completion (kitti, pcn, shapenet55). PoinTr's completions have 16,384
+# and pfnet's at most 2,560; scoring costs completion points × reference clouds (KITTI's
+# MMD: a 3,000,000-point file took a minute against 12 cars, hours against PCN's 5,927).
+MAX_SCORED_POINTS = 1 << 17
 _JSON_METRICS = ("pred_to_gt", "gt_to_pred", "cd_l1", "f_score")
 
 
@@ -306,6 +310,7 @@ def evaluate_benchmark(
     present, loaded, missing, unmatched = _read_predictions(pred_dir, keys, workers)
     preds, gts, scored, unreadable, reasons = [], [], [], [], []
     for k, cloud in zip(present, loaded, strict=True):
+        cloud = _refuse_oversized(cloud, keys[k])
         if isinstance(cloud, np.ndarray) and chosen.ignore_zeros:
             if not (cloud.astype(np.float32).sum(axis=1, dtype=np.float32) != 0).any():
                 cloud = f"{keys[k]}: every point has x + y + z = 0 (PoinTr leaves such points out)"
@@ -422,7 +427,8 @@ def _record_problem(info: Any) -> str | None:
     name = protocol.get("name", "test")  # "test": PF-Net's protocol, as older records name it
     if not isinstance(name, str):
         return f'"protocol.name" must be a protocol\'s name, got {shown(name)}'
-    from pfnet.protocols import PROTOCOL_NAMES
+    from pfnet.formats import MAX_CLOUD_POINTS
+    from pfnet.protocols import PROTOCOL_NAMES, PROTOCOLS
 
     if name != "test" and name.lower() not in PROTOCOL_NAMES:
         return (
@@ -439,11 +445,19 @@ def _record_problem(info: Any) -> str | None:
     counts = {
         "protocol.n_points": protocol.get("n_points"),
         "model.n_points": model.get("n_points"),
+        "model.n_input": model.get("n_input"),
         "model.n_predicted": model.get("n_predicted"),
     }
+    # informational, but bounded as every count pfnet reads: no cloud holds more points
     for key, count in counts.items():
-        if count is not None and not (is_int(count) and count >= 1):
-            return f'"{key}" must be a positive integer, got {shown(count)}'
+        if count is not None and not (is_int(count) and 1 <= count <= MAX_CLOUD_POINTS):
+            return (
+                f'"{key}" must be a positive integer of at most {MAX_CLOUD_POINTS}, '
+                f"got {shown(count)}"
+            )
+    views, most = protocol.get("views"), max(p.views for p in PROTOCOLS.values())
+    if views is not None and not (is_int(views) and 1 <= views <= most):
+        return f'"protocol.views" must be a positive integer of at most {most}, got {shown(views)}'
     points, trained = counts["protocol.n_points"], counts["model.n_points"]
     # Benchmark protocols resample their clouds to the model's input, as complete does.
     if not benchmark and None not in (points, trained) and points != trained:
@@ -466,6 +480,17 @@ def recorded_protocol_name(pred_dir: str | os.PathLike[str]) -> str | None:
     info = json.loads((Path(pred_dir) / "predictions.json").read_text(encoding="utf-8"))
     name = info["protocol"].get("name", "test")
     return "pfnet" if name == "test" else str(name)
+
+
+def _refuse_oversized(cloud: np.ndarray | str, key: str) -> np.ndarray | str:
+    """A completion of more than :data:`MAX_SCORED_POINTS` points as the reason it is not
+    scored (what :func:`_load` gives for a file it cannot read); anything else as it is."""
+    if isinstance(cloud, np.ndarray) and len(cloud) > MAX_SCORED_POINTS:
+        return (
+            f"{key}: a completion of {len(cloud)} points; at most {MAX_SCORED_POINTS:,} are "
+            "scored (PoinTr's have 16,384): thin it first"
+        )
+    return cloud
 
 
 def _stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:
@@ -604,6 +629,7 @@ def evaluate_kitti(
     present, loaded, missing, unmatched = _read_predictions(pred_dir, keys, workers)
     inputs, completions, scored, unreadable, reasons = [], [], [], [], []
     for k, cloud in zip(present, loaded, strict=True):
+        cloud = _refuse_oversized(cloud, keys[k])
         if isinstance(cloud, np.ndarray):
             cloud = cloud[zero_sum_mask(cloud)]
             if not len(cloud):

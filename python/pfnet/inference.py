@@ -11,6 +11,10 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import secrets
+import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +28,8 @@ from pfnet.protocols import check_protocol_data, get_protocol
 # A point a thousand radii out is no completion but a broken or forged model (weights that
 # overflow, a graph that outputs 1e30), and mapped back it could leave float32.
 MAX_PREDICTED_RADIUS = 1e3
+# Skipped shapes named in predictions.json (its reader takes at most 1 MB).
+MAX_SKIPPED_LISTED = 100
 
 
 def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.ndarray:
@@ -68,11 +74,123 @@ def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.nda
     return detail.astype(np.float32, copy=False)  # after the bound: float64 1e300 would warn
 
 
+# What pfnet predict leaves in a prediction folder besides its category folders: the record,
+# a record whose atomic write was interrupted, and the folders being replaced (hidden).
+_RECORD = "predictions.json"
+_RECORD_TMP = re.compile(r"\.predictions\.[0-9a-f]{12}\.tmp\.json")
+_REPLACED = ".pfnet-replaced-"
+
+
+def check_prediction_folder(
+    out: Path, data_dir: str | os.PathLike[str], split: str, protocol: str, overwrite: bool
+) -> list[Path]:
+    """Refuse a prediction folder that holds another run's predictions, unless ``overwrite``.
+
+    A run is its data set, split and protocol (the name ``predictions.json`` records; ``test``
+    for the pfnet protocol). A folder of the same run is predicted again as it is, file by
+    file; one of another run would mix two runs' files under the new record. With
+    ``overwrite`` its old predictions are removed by :func:`open_prediction_folder`: only a
+    folder that pfnet predict wrote and that holds nothing else.
+
+    Returns:
+        The folders in ``out`` to remove before predicting (none for the same run).
+
+    Raises:
+        DataError: Another run's folder without ``overwrite``; with it, a folder whose record
+            cannot be read or that holds files pfnet predict did not write.
+    """
+    out = Path(out)
+    record = out / _RECORD
+    if not out.is_dir() or (not record.exists() and not record.is_symlink()):
+        return []  # new, or files of the user's: predictions are added beside them
+    this = {"data": str(Path(data_dir).resolve()), "split": split, "protocol": protocol}
+    recorded = _recorded_run(record)
+    if recorded is not None and recorded["data"] is None:  # a record of an older pfnet
+        this["data"] = None
+    if recorded == this:
+        return []
+    if not overwrite:
+        shown = (
+            "an unreadable predictions.json"
+            if recorded is None
+            else ", ".join(f"{key} {value}" for key, value in recorded.items())
+        )
+        raise DataError(
+            f"{out} holds the predictions of another run ({shown}); pass --overwrite to "
+            "replace them, or name another folder"
+        )
+    if recorded is None:
+        raise DataError(
+            f"{out}: its {_RECORD} cannot be read, so it is not a folder pfnet predict wrote; "
+            "overwriting only replaces one"
+        )
+    replaced, others = [], []
+    for entry in sorted(out.iterdir()):
+        if entry.name == _RECORD or (_RECORD_TMP.fullmatch(entry.name) and _plain_file(entry)):
+            continue
+        if _category_folder(entry) or (
+            entry.name.startswith(_REPLACED)  # left by an interrupted replacement
+            and _plain_folder(entry)
+            and all(map(_category_folder, entry.iterdir()))
+        ):
+            replaced.append(entry)
+        else:
+            others.append(entry.name)
+    if others:
+        raise DataError(
+            f"{out}: holds files pfnet predict did not write ({', '.join(others[:3])}"
+            f"{', ...' if len(others) > 3 else ''}); overwriting would delete them, so move "
+            "them out first or choose another prediction folder"
+        )
+    return replaced
+
+
+def _plain_file(path: Path) -> bool:
+    return path.is_file() and not path.is_symlink()
+
+
+def _plain_folder(path: Path) -> bool:
+    return path.is_dir() and not path.is_symlink()
+
+
+def _category_folder(path: Path) -> bool:
+    """A folder of files that pfnet predict writes: predictions, or ones whose atomic write
+    was interrupted (``.<name>.<hex>.tmp.npy``)."""
+    return _plain_folder(path) and all(
+        f.suffix == ".npy" and _plain_file(f) for f in path.iterdir()
+    )
+
+
+def _recorded_run(record: Path) -> dict[str, Any] | None:
+    """The data set, split and protocol a ``predictions.json`` records, None if it cannot be
+    read (the data set None in an unfinished record of an older pfnet, which did not name it)."""
+    try:
+        if not _plain_file(record) or record.stat().st_size > 1 << 20:
+            return None
+        info = json.loads(record.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    if not isinstance(info, dict) or not isinstance(info.get("protocol"), dict):
+        return None
+    name = info["protocol"].get("name", "test")
+    return {"data": info.get("data"), "split": info.get("split"), "protocol": name}
+
+
 def open_prediction_folder(
-    out: Path, categories: list[str], split: str, protocol: dict[str, Any]
+    out: Path,
+    categories: list[str],
+    split: str,
+    protocol: dict[str, Any],
+    *,
+    data_dir: str | os.PathLike[str],
+    replaced: Sequence[Path] = (),
 ) -> None:
     """Make ``out`` and its category folders, with a ``predictions.json`` that says the run is
     not complete (``evaluate`` refuses it until the last file is written).
+
+    The folders ``replaced`` (another run's, :func:`check_prediction_folder`) are first moved
+    into one hidden folder in ``out`` (a rename each), then the record is written, then they
+    are deleted: an interrupted run never leaves another run's files beside its record.
 
     Raises:
         DataError: A category folder is a link out of ``out``.
@@ -90,9 +208,20 @@ def open_prediction_folder(
                 f"{folder} is a link out of the prediction folder {out}; remove it first"
             )
     out.mkdir(parents=True, exist_ok=True)
-    record = {"complete": False, "split": split, "protocol": protocol}
-    with atomic_path(out / "predictions.json") as tmp:
+    trash = out / f"{_REPLACED}{secrets.token_hex(6)}"
+    if replaced:
+        trash.mkdir()
+        for folder in replaced:
+            folder.rename(trash / folder.name)
+    record = {
+        "complete": False,
+        "data": str(Path(data_dir).resolve()),
+        "split": split,
+        "protocol": protocol,
+    }
+    with atomic_path(out / _RECORD) as tmp:
         tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
+    shutil.rmtree(trash, ignore_errors=True)
     for category in categories:
         (out / category).mkdir(exist_ok=True)
 
@@ -148,6 +277,7 @@ def predict_split(
     batch_size: int = 32,
     device: str = "auto",
     runtime: str = "auto",
+    overwrite: bool = False,
 ) -> dict:
     """Predict every sample of ``split`` and write ``out_dir`` (see the module docstring).
 
@@ -155,12 +285,14 @@ def predict_split(
         checkpoint: A checkpoint written by ``pfnet train``, a model file or a shipped
             model's name; ``None`` for the default shipped model.
         data_dir: A prepared data set.
-        out_dir: Prediction folder to create or fill (existing files are replaced).
+        out_dir: Prediction folder to create or fill (existing files are replaced); one
+            holding another run's predictions is refused (:func:`check_prediction_folder`).
         split: ``train``, ``val`` or ``test``.
         missing_ratio: Ratio of the test crop; default: the checkpoint's training ratio.
         batch_size: Clouds per forward pass.
         device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
         runtime: ``auto``, ``torch`` or ``onnx`` (:func:`pfnet.runtimes.load_generator`).
+        overwrite: Replace another run's predictions in ``out_dir``.
 
     Returns:
         The ``predictions.json`` document.
@@ -181,6 +313,7 @@ def predict_split(
         raise ConfigError(
             f"prediction folder {out_dir} is a file; name a folder for the predictions"
         )
+    replaced = check_prediction_folder(Path(out_dir), data_dir, split, "test", overwrite)
     loaded = load_generator(checkpoint, runtime=runtime, device=device)
     model, config, device = loaded.model, loaded.config, loaded.device
     trained_ratio = config.missing_ratio
@@ -210,7 +343,14 @@ def predict_split(
     categories = sorted(set(map(str, clouds.category)))
     if "predictions.json" in categories:  # its folder would stand where the record goes
         raise DataError(f"{data_dir}: a category is named predictions.json")
-    open_prediction_folder(out, categories, split, {"missing_ratio": ratio})
+    open_prediction_folder(
+        out,
+        categories,
+        split,
+        {"name": "test", "missing_ratio": ratio},
+        data_dir=data_dir,
+        replaced=replaced,
+    )
     for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
         save_npy(out / str(cat) / f"{name}.npy", cloud)
     info = {
@@ -252,6 +392,7 @@ def predict_benchmark(
     device: str = "auto",
     runtime: str = "auto",
     chunk: int = 256,
+    overwrite: bool = False,
 ) -> dict:
     """Complete every input of a benchmark protocol (``pcn``, ``shapenet55``) with a PF-Net
     model and write the whole completions for ``pfnet evaluate --protocol``.
@@ -271,7 +412,12 @@ def predict_benchmark(
     Raises:
         ConfigError: Bad protocol, ratio, device or batch size.
         DataError: Unreadable checkpoint or data set; a data set without partial scans
-            (``pcn``).
+            (``pcn``); a prediction folder of another run without ``overwrite``
+            (:func:`check_prediction_folder`); every partial scan degenerate.
+
+    A partial scan whose points all coincide (nothing to normalise) is skipped: no file is
+    written for it, its message is in the record's ``skipped`` (the first
+    :data:`MAX_SKIPPED_LISTED`) and ``n_skipped``.
     """
     from pfnet.completion import network_input, normalisation
     from pfnet.data import load_split
@@ -295,6 +441,7 @@ def predict_benchmark(
             device=device,
             runtime=runtime,
             chunk=chunk,
+            overwrite=overwrite,
         )
     if batch_size < 1:
         raise ConfigError(f"batch size must be at least 1, got {batch_size}")
@@ -316,6 +463,7 @@ def predict_benchmark(
             f"prediction folder {out_dir} is a file; name a folder for the predictions"
         )
     check_protocol_data(chosen, data_dir)
+    replaced = check_prediction_folder(out, data_dir, split, chosen.name, overwrite)
     clouds = load_split(data_dir, split)
     if len(clouds) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")
@@ -328,8 +476,11 @@ def predict_benchmark(
     model, config, device = loaded.model, loaded.config, loaded.device
     n_input = int(model.n_points) - int(model.n_missing)
     categories = sorted(set(map(str, clouds.category)))
-    open_prediction_folder(out, categories, split, {"name": chosen.name})
+    open_prediction_folder(
+        out, categories, split, {"name": chosen.name}, data_dir=data_dir, replaced=replaced
+    )
     n_predicted = 0
+    skipped: list[str] = []
     for start in range(0, len(clouds), chunk):
         stop = min(start + chunk, len(clouds))
         keys = [
@@ -337,14 +488,19 @@ def predict_benchmark(
             for c, n in zip(clouds.category[start:stop], clouds.name[start:stop], strict=True)
         ]
         if partials is not None:
-            given = partials[start:stop]
-            transforms = [normalisation(p, f"{k[0]} (partial scan)") for p, k in zip(given, keys)]
-            batch = np.stack(
-                [network_input(t.apply(p), n_input) for p, t in zip(given, transforms, strict=True)]
-            )
+            rows = []  # (scan, its normalisation, key); a degenerate scan is skipped, named
+            for p, k in zip(partials[start:stop], keys, strict=True):
+                try:
+                    rows.append((p, normalisation(p, f"{k[0]} (partial scan)"), k[0]))
+                except DataError as err:
+                    skipped.append(str(err))
+                    (out / f"{k[0]}.npy").unlink(missing_ok=True)  # no earlier run's file
+            if not rows:
+                continue
+            batch = np.stack([network_input(t.apply(p), n_input) for p, t, _ in rows])
             detail = predict_missing(model, batch, batch_size, device)
-            for p, t, d, k in zip(given, transforms, detail, keys, strict=True):
-                save_npy(out / f"{k[0]}.npy", np.concatenate([p, t.invert(d)]).astype(np.float32))
+            for (p, t, k), d in zip(rows, detail, strict=True):
+                save_npy(out / f"{k}.npy", np.concatenate([p, t.invert(d)]).astype(np.float32))
             n_predicted = int(detail.shape[1])
             continue
         for view in range(chosen.views):
@@ -354,6 +510,10 @@ def predict_benchmark(
             for c, d, k in zip(crops, detail, keys, strict=True):
                 save_npy(out / f"{k[view]}.npy", np.concatenate([c, d]).astype(np.float32))
             n_predicted = int(detail.shape[1])
+    if len(skipped) == len(clouds):
+        raise DataError(
+            f"no shape of split {split!r} of {data_dir} could be completed ({skipped[0]})"
+        )
     info = {
         "complete": True,
         "checkpoint": describe(checkpoint),
@@ -373,7 +533,9 @@ def predict_benchmark(
             "n_input": n_input,
             "n_predicted": n_predicted,
         },
-        "n_samples": len(clouds) * chosen.views,
+        "n_samples": len(clouds) * chosen.views - len(skipped),
+        "skipped": skipped[:MAX_SKIPPED_LISTED],
+        "n_skipped": len(skipped),
         "device": device,
         "runtime": loaded.runtime,
     }
@@ -392,6 +554,7 @@ def predict_kitti(
     device: str = "auto",
     runtime: str = "auto",
     chunk: int = 256,
+    overwrite: bool = False,
 ) -> dict:
     """Complete every KITTI car of a data set prepared from the KITTI layout.
 
@@ -409,7 +572,9 @@ def predict_kitti(
 
     Raises:
         ConfigError: Bad device or batch size.
-        DataError: Unreadable checkpoint or data set; a data set without KITTI's boxes.
+        DataError: Unreadable checkpoint or data set; a data set without KITTI's boxes; a
+            prediction folder of another run without ``overwrite``
+            (:func:`check_prediction_folder`).
     """
     from pfnet.completion import network_input
     from pfnet.data import load_split
@@ -429,6 +594,7 @@ def predict_kitti(
             f"prediction folder {out_dir} is a file; name a folder for the predictions"
         )
     check_protocol_data(get_protocol("kitti"), data_dir)
+    replaced = check_prediction_folder(out, data_dir, split, "kitti", overwrite)
     cars = load_split(data_dir, split)
     if len(cars) == 0:
         raise DataError(f"split {split!r} of {data_dir} has no samples")
@@ -440,7 +606,9 @@ def predict_kitti(
     model, config, device = loaded.model, loaded.config, loaded.device
     n_input = int(model.n_points) - int(model.n_missing)
     categories = sorted(set(map(str, cars.category)))
-    open_prediction_folder(out, categories, split, {"name": "kitti"})
+    open_prediction_folder(
+        out, categories, split, {"name": "kitti"}, data_dir=data_dir, replaced=replaced
+    )
     n_predicted = 0
     for start in range(0, len(cars), chunk):
         stop = min(start + chunk, len(cars))

@@ -223,12 +223,21 @@ def shapenet_crop(points: np.ndarray, ratio: float, view: int) -> np.ndarray:
     Returns:
         float32 ``(2048, 3)`` or ``(B, 2048, 3)``; fewer than 2,048 kept points are returned
         as they are (sorted by distance).
+
+    Raises:
+        ConfigError: A ratio or view out of range, or a view that is not an integer.
+        DataError: Points that are not finite ``(N, 3)`` or ``(B, N, 3)`` clouds.
     """
     from pfnet.geometry import farthest_point_sample
 
-    if not 0 <= view < len(SHAPENET_VIEWPOINTS):
-        raise ConfigError(f"view must be in [0, {len(SHAPENET_VIEWPOINTS)}), got {view}")
+    views = len(SHAPENET_VIEWPOINTS)
+    if isinstance(view, bool) or not isinstance(view, (int, np.integer)) or not 0 <= view < views:
+        raise ConfigError(f"view must be an integer in [0, {views}), got {view!r}")
     clouds = np.asarray(points, dtype=np.float32)
+    if clouds.ndim not in (2, 3) or clouds.shape[-1] != 3:
+        raise DataError(f"points must have shape (N, 3) or (B, N, 3), got {clouds.shape}")
+    if not np.isfinite(clouds).all():
+        raise DataError("points must be finite: some coordinates are NaN or infinite")
     single = clouds.ndim == 2
     if single:
         clouds = clouds[None]

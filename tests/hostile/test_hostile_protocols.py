@@ -111,3 +111,51 @@ def test_predict_refuses_a_data_set_as_its_out_folder(tiny_dataset, tmp_path, ca
     args = ["predict", "--checkpoint", str(tmp_path / "m.pt"), "--data", str(tmp_path)]
     assert main([*args, "--out", str(tiny_dataset)]) == 1
     assert f"--out {tiny_dataset} is a prepared data set" in capsys.readouterr().err
+
+
+def _small_checkpoint(path, n_points: int):
+    from pfnet.checkpoint import save_checkpoint
+    from pfnet.models import build_model
+    from pfnet.training.config import preset_config
+
+    config = preset_config("small").replace(n_points=n_points, width=0.125)
+    torch.manual_seed(0)
+    save_checkpoint(path, {"config": config.to_dict(), "model": build_model(config).state_dict()})
+    return path
+
+
+def test_predict_refuses_another_runs_folder_unless_overwrite(tiny_dataset, tmp_path, capsys):
+    import json
+
+    from pfnet.data import load_split
+
+    checkpoint = _small_checkpoint(tmp_path / "m.pt", 512)
+    out = tmp_path / "pred"
+    args = ["predict", "--checkpoint", str(checkpoint), "--data", str(tiny_dataset)]
+    args += ["--out", str(out), "--device", "cpu"]
+    assert main([*args, "--split", "test"]) == 0
+    assert main([*args, "--split", "test", "--missing-ratio", "0.5"]) == 0  # the same run
+    test_files = sorted(out.glob("*/*.npy"))
+    # another split: refused, nothing changed
+    assert main([*args, "--split", "val"]) == 1
+    err = capsys.readouterr().err
+    assert f"{out} holds the predictions of another run (data {tiny_dataset}" in err
+    assert "split test, protocol test); pass --overwrite to replace them" in err
+    assert sorted(out.glob("*/*.npy")) == test_files
+    assert json.loads((out / "predictions.json").read_text())["split"] == "test"
+    # --overwrite replaces only what pfnet predict wrote
+    (out / "notes.txt").write_text("mine")
+    assert main([*args, "--split", "val", "--overwrite"]) == 1
+    assert "holds files pfnet predict did not write (notes.txt)" in capsys.readouterr().err
+    assert (out / "notes.txt").read_text() == "mine"
+    (out / "notes.txt").unlink()
+    assert main([*args, "--split", "val", "--overwrite"]) == 0
+    val = load_split(tiny_dataset, "val")
+    want = sorted(f"{c}/{n}.npy" for c, n in zip(val.category, val.name, strict=True))
+    assert sorted(str(p.relative_to(out)) for p in out.glob("*/*.npy")) == want
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    assert json.loads((out / "predictions.json").read_text())["split"] == "val"
+    # an unreadable record is not replaced
+    (out / "predictions.json").write_text("{not json")
+    assert main([*args, "--split", "test", "--overwrite"]) == 1
+    assert "predictions.json cannot be read, so it is not a folder" in capsys.readouterr().err

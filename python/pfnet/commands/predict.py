@@ -13,6 +13,7 @@ The run is deterministic: no random numbers are drawn, and the model is in eval 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from pfnet.devices import DEVICE_HELP
@@ -48,6 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "shapenet55: 0.25, 0.5 or 0.75, default 0.25)",
     )
     parser.add_argument("--out", type=Path, required=True, help="prediction folder to write")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the predictions of another run (data set, split or protocol) in --out",
+    )
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)
     parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
@@ -99,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         device=args.device,
         runtime=args.runtime,
+        overwrite=args.overwrite,
     )
     ratio = info["protocol"]["missing_ratio"]
     print(
@@ -123,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_benchmark(args: argparse.Namespace) -> int:
     """``pfnet predict --protocol pcn|shapenet55|kitti``: whole completions of the benchmark's
-    inputs."""
+    inputs; exit 2 if some shapes were skipped (the rest are written)."""
     if args.gallery is not None:
         raise ConfigError(f"--gallery applies to the pfnet protocol, not to {args.protocol}")
     _check_benchmark_ratio(get_protocol(args.protocol), args.missing_ratio)
@@ -137,6 +144,7 @@ def _run_benchmark(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         device=args.device,
         runtime=args.runtime,
+        overwrite=args.overwrite,
     )
     ratio = info["protocol"]["missing_ratio"]
     shown = "" if ratio is None else f", {ratio:.0%} missing"
@@ -148,6 +156,14 @@ def _run_benchmark(args: argparse.Namespace) -> int:
     name = info["protocol"]["name"]
     more = " --references CARS" if name == "kitti" else ""
     print(f"score it: pfnet evaluate {args.out} --data {args.data} --protocol {name}{more}")
+    n_skipped = info.get("n_skipped", 0)
+    if n_skipped:
+        for reason in info["skipped"]:
+            print(f"skipped: {reason}", file=sys.stderr)
+        if n_skipped > len(info["skipped"]):
+            print(f"skipped: and {n_skipped - len(info['skipped'])} more", file=sys.stderr)
+        print(f"pfnet predict: {n_skipped} shape(s) could not be completed", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -163,8 +163,10 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= args.jobs <= MAX_JOBS:
         raise ConfigError(f"--jobs must be between 1 and {MAX_JOBS}; got {args.jobs}")
     if args.readme is not None:
-        if not args.readme.is_file():
+        if not args.readme.exists():
             raise ConfigError(f"--readme {args.readme} does not exist")
+        if not args.readme.is_file():  # a folder, a pipe, a device
+            raise ConfigError(f"--readme {args.readme} is not a regular file")
         read_readme(args.readme)  # before a study of hours, not after it
     if not args.report_only:  # the options of a study to run, not of a report to rebuild
         if args.data is None and args.source is not None and not args.source.exists():

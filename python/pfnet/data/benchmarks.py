@@ -253,7 +253,7 @@ def _shapenet_entries(root: Path, fmt: str) -> tuple[list[_Entry], list[tuple[st
 
 
 def _read(entry: _Entry, fmt: str) -> tuple[np.ndarray | None, np.ndarray | None, str]:
-    from pfnet.data.sampling import normalize
+    from pfnet.data.sampling import normalize, unit_ball
     from pfnet.io import read_point_cloud
 
     expected = PCN_POINTS if fmt == "pcn" else SHAPENET_POINTS
@@ -266,6 +266,18 @@ def _read(entry: _Entry, fmt: str) -> tuple[np.ndarray | None, np.ndarray | None
             partial = read_point_cloud(entry.partial)
             if len(partial) > MAX_PARTIAL_POINTS:
                 return None, None, f"{entry.partial}: more than {MAX_PARTIAL_POINTS} points"
+            # no shape to score, or no scan to complete (predict's input is normalised)
+            if unit_ball(complete) is None:
+                return None, None, f"all {len(complete)} points of the complete cloud coincide"
+            if unit_ball(partial) is None:
+                return (
+                    None,
+                    None,
+                    (
+                        f"{entry.partial}: all {len(partial)} points of the partial scan coincide; "
+                        "nothing to complete"
+                    ),
+                )
         if fmt != "pcn":  # PoinTr's pc_norm
             complete = normalize(complete)
         return np.asarray(complete, np.float32), partial, ""

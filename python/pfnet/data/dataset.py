@@ -12,7 +12,7 @@ from torch.utils.data import Dataset
 from pfnet.data.augment import Augmentation
 from pfnet.data.crops import missing_count, test_protocol_viewpoints
 from pfnet.data.format import CloudSet, load_split
-from pfnet.errors import ConfigError
+from pfnet.errors import ConfigError, DataError
 
 __all__ = ["CROPS", "CompletionDataset"]
 
@@ -73,6 +73,11 @@ class CompletionDataset(Dataset):
         self.seed = seed
         self.missing_ratio = missing_ratio
         self.n_points = self.clouds.n_points
+        if self.n_points == 0:  # a KITTI data set stores the cars' scans, no complete cloud
+            raise DataError(
+                f"{root} holds no complete clouds (a KITTI data set: for predict and evaluate "
+                "--protocol kitti only); train on a data set of complete clouds"
+            )
         self.n_missing = missing_count(self.n_points, missing_ratio)
         self.epoch = 0
         self.fresh_points = bool(fresh_points) and crop != "test" and self.clouds.extra is not None

@@ -51,6 +51,9 @@ KITTI_INPUT_POINTS = 2048
 """Points of PoinTr's KITTI input (``RandomSamplePoints`` with ``n_points: 2048``)."""
 # A KITTI car has a few to a few thousand LiDAR points.
 MAX_CAR_POINTS = 1 << 20
+# A car's points lie in its box (a return or two just outside); a car with none within this
+# many box lengths of the box's centre is a cloud and a box that do not belong together.
+MAX_CAR_DISTANCE = 3.0
 _SWAP_YZ = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 
 
@@ -117,9 +120,17 @@ def kitti_input(points: np.ndarray, box: np.ndarray, source: str = "car") -> np.
 
     Returns:
         float32 ``(min(N, 2048), 3)``.
+
+    Raises:
+        DataError: Points that are not finite ``(N, 3)``, or a box :func:`object_pose` refuses.
     """
     from pfnet.geometry import farthest_point_sample
 
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise DataError(f"{source}: points must have shape (N, 3), got {points.shape}")
+    if not np.isfinite(points).all():
+        raise DataError(f"{source}: points must be finite; some coordinates are NaN or infinite")
     cloud = object_pose(box, f"{source} (box)").apply(points)
     if len(cloud) > KITTI_INPUT_POINTS:
         cloud = cloud[farthest_point_sample(cloud, KITTI_INPUT_POINTS, start_index=0)]
@@ -198,9 +209,19 @@ def _read_car(car: _Car) -> tuple[np.ndarray | None, np.ndarray | None, str, str
         box = read_point_cloud(car.box)
         if box.shape != (8, 3):
             raise DataError(f"{car.box}: a box has 8 corners, this file holds {len(box)} points")
-        object_pose(box, str(car.box))
+        pose = object_pose(box, str(car.box))
     except DataError as err:
         return None, None, str(car.box), str(err).removeprefix(f"{car.box}: ")
+    # in box lengths, in float64: points at 1e15 and a box 4e-6 long leave float32
+    moved = (np.asarray(points, np.float64) - pose.centre) @ pose.rotation / pose.scale
+    nearest = float(np.abs(moved).max(axis=1).min())
+    if nearest > MAX_CAR_DISTANCE:
+        reason = (
+            f"no point within {MAX_CAR_DISTANCE:g} box lengths of the centre of its box "
+            f"{car.box.name} (the nearest is {nearest:.3g} lengths away): the cloud and the "
+            "box do not belong together"
+        )
+        return None, None, str(car.cloud), reason
     return points, box, "", ""
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import check_point_count, check_table, first_three_columns
+from pfnet.formats import check_body_span, check_point_count, check_table, first_three_columns
 
 # What numpy's header reader raises on hostile bytes: besides ValueError and EOFError, its
 # fallback for Python-2 headers tokenizes the text (tokenize.TokenError, SyntaxError on an
@@ -75,6 +75,8 @@ def read_npy(file: Path) -> np.ndarray:
         raise DataError(f"{file}: not a valid .npy array file (pickled objects are not read)")
     check_table(file, shape, dtype)
     check_point_count(file, shape[0])
+    # the rows are walked (mapped) as a PLY or PCD body is: the same bound on their bytes
+    check_body_span(file, shape[0] * shape[1] * dtype.itemsize, f"the .npy rows {shape}")
     try:
         # mapped, so only the three coordinate columns are copied into memory
         array = np.load(file, mmap_mode="r", allow_pickle=False)

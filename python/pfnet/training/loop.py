@@ -166,6 +166,11 @@ class Trainer:
         )
         if len(self.train_set) == 0:
             raise DataError(f"{data_dir}: the train split is empty")
+        if val_dir is not None and len(self.val_set) == 0:
+            raise DataError(
+                f"the validation data set {val_dir} has no shapes in its val split; name one "
+                "with validation shapes (or validate on the training data set's val split)"
+            )
         n_points = int(self.train_set.n_points)
         if config.n_points is not None and config.n_points != n_points:
             raise ConfigError(
