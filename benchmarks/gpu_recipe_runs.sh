@@ -17,6 +17,11 @@
 #     bash benchmarks/gpu_recipe_runs.sh run 430
 #     RUNS="B2:16000:0.25:0 C2:8000:0.5:0 A2:8000:0.25:1" EXPORT="B2 A2" \
 #       bash benchmarks/gpu_recipe_runs.sh run 470
+# The study with the recipe (pfnet reproduce, issue #13 item 7; docs/results and
+# docs/results/longer-runs), the second call with the device time left:
+#     bash benchmarks/gpu_recipe_runs.sh study 555
+#     STEPS=10000 MODELS="pfnet-vanilla mr-cmlp cmlp mlp" RATIOS=0.25 JOBS=4 \
+#       bash benchmarks/gpu_recipe_runs.sh study 400
 set -uo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 
