@@ -1,9 +1,10 @@
-"""Shared by the benchmark-protocol tests: an independent nearest-neighbour computation, and
-the marker for tests that run a model."""
+"""Shared by the benchmark-protocol tests: an independent nearest-neighbour computation, the
+marker for tests that run a model, and binary PCD files as the benchmarks' releases hold them."""
 
 from __future__ import annotations
 
 import importlib.util
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,3 +24,15 @@ def nearest_distances(queries: np.ndarray, points: np.ndarray) -> np.ndarray:
         block = q[start : start + 512]
         out[start : start + 512] = np.sqrt(((block[:, None] - p[None]) ** 2).sum(-1).min(1))
     return out
+
+
+def write_pcd(path: Path, points: np.ndarray) -> None:
+    """A binary PCD as Open3D writes PCN's and KITTI's files."""
+    points = np.asarray(points, np.float32)
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\n"
+        f"TYPE F F F\nCOUNT 1 1 1\nWIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {len(points)}\nDATA binary\n"
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(header.encode() + points.tobytes())

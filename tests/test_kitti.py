@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from brute import nearest_distances, needs_runtime
+from brute import nearest_distances, needs_runtime, write_pcd
 
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
@@ -42,18 +42,6 @@ CARS = [
     ("frame_7_car_0", 2, 2.5, 350),
     ("frame_7_car_1", 1, 1.0, 900),
 ]
-
-
-def write_pcd(path: Path, points: np.ndarray) -> None:
-    """A binary PCD as Open3D writes the release's files."""
-    points = np.asarray(points, np.float32)
-    header = (
-        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\n"
-        f"TYPE F F F\nCOUNT 1 1 1\nWIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
-        f"POINTS {len(points)}\nDATA binary\n"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(header.encode() + points.tobytes())
 
 
 def car_surfaces(count: int) -> list[np.ndarray]:

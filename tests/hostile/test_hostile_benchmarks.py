@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from brute import write_pcd
 
 from pfnet.data.benchmarks import MAX_INDEX_BYTES, load_partials, prepare_benchmark
 from pfnet.data.kitti import load_boxes
@@ -179,21 +180,11 @@ def test_implausible_names_are_skipped_escaped_and_cut(tmp_path):
     # PCN.json: a model name over 255 bytes no longer aborts the run
     pcn = tmp_path / "pcn"
     points = np.random.default_rng(1).normal(size=(16384, 3)).astype(np.float32)
-    _write_pcd(pcn / "test" / "complete" / "t" / "m.pcd", points)
-    _write_pcd(pcn / "test" / "partial" / "t" / "m" / "00.pcd", points[:100])
+    write_pcd(pcn / "test" / "complete" / "t" / "m.pcd", points)
+    write_pcd(pcn / "test" / "partial" / "t" / "m" / "00.pcd", points[:100])
     record = {"taxonomy_id": "t", "taxonomy_name": "c", "test": ["m", "m" * 300]}
     (pcn / "PCN.json").write_text(json.dumps([record]))
     report = prepare_benchmark(pcn, tmp_path / "out-pcn", "pcn")
     assert report.counts["test"] == {"c": 1}
     [(where, why)] = report.skipped
     assert where.endswith("m" * 100 + "...") and "longer than 200" in why
-
-
-def _write_pcd(path: Path, points: np.ndarray) -> None:
-    header = (
-        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
-        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
-        "DATA binary\n"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(header.encode() + points.tobytes())

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from brute import write_pcd
 
 from pfnet.cli import main
 from pfnet.data import load_split
@@ -33,20 +34,9 @@ BOX = np.array(
 )
 
 
-def _write_pcd(path: Path, points: np.ndarray) -> None:
-    points = np.asarray(points, np.float32)
-    header = (
-        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
-        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
-        "DATA binary\n"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(header.encode() + points.tobytes())
-
-
 def _kitti_tree(root: Path, cars: dict[str, tuple[np.ndarray, np.ndarray]]) -> Path:
     for name, (points, box) in cars.items():
-        _write_pcd(root / "cars" / f"{name}.pcd", points)
+        write_pcd(root / "cars" / f"{name}.pcd", points)
         (root / "bboxes").mkdir(parents=True, exist_ok=True)
         np.savetxt(root / "bboxes" / f"{name}.txt", box)
     return root
@@ -54,8 +44,8 @@ def _kitti_tree(root: Path, cars: dict[str, tuple[np.ndarray, np.ndarray]]) -> P
 
 def _pcn_tree(root: Path, shapes: dict[str, tuple[np.ndarray, np.ndarray]]) -> Path:
     for model, (complete, partial) in shapes.items():
-        _write_pcd(root / "test" / "complete" / "02691156" / f"{model}.pcd", complete)
-        _write_pcd(root / "test" / "partial" / "02691156" / model / "00.pcd", partial)
+        write_pcd(root / "test" / "complete" / "02691156" / f"{model}.pcd", complete)
+        write_pcd(root / "test" / "partial" / "02691156" / model / "00.pcd", partial)
     record = {"taxonomy_id": "02691156", "taxonomy_name": "airplane", "test": list(shapes)}
     (root / "PCN.json").write_text(json.dumps([record]))
     return root
