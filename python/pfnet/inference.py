@@ -81,6 +81,14 @@ _RECORD_TMP = re.compile(r"\.predictions\.[0-9a-f]{12}\.tmp\.json")
 _REPLACED = ".pfnet-replaced-"
 
 
+# What open_prediction_folder and atomic_path name: a hidden folder of replaced predictions,
+# and a prediction whose atomic write was interrupted.
+_REPLACED_FOLDER = re.compile(r"\.pfnet-replaced-[0-9a-f]{12}")
+
+
+_PREDICTION_TMP = re.compile(r"\..+\.[0-9a-f]{12}\.tmp\.npy")
+
+
 def check_prediction_folder(
     out: Path, data_dir: str | os.PathLike[str], split: str, protocol: str, overwrite: bool
 ) -> list[Path]:
@@ -124,12 +132,19 @@ def check_prediction_folder(
             f"{out}: its {_RECORD} cannot be read, so it is not a folder pfnet predict wrote; "
             "overwriting only replaces one"
         )
+    owned = _recorded_categories(record)
+    if owned is None:
+        raise DataError(
+            f"{out}: its {_RECORD} does not name its categories (an older pfnet wrote it), so "
+            "which folders hold its predictions is not known; remove them yourself or choose "
+            "another prediction folder"
+        )
     replaced, others = [], []
     for entry in sorted(out.iterdir()):
         if entry.name == _RECORD or (_RECORD_TMP.fullmatch(entry.name) and _plain_file(entry)):
             continue
-        if _category_folder(entry) or (
-            entry.name.startswith(_REPLACED)  # left by an interrupted replacement
+        if (entry.name in owned and _category_folder(entry)) or (
+            _REPLACED_FOLDER.fullmatch(entry.name)  # left by an interrupted replacement
             and _plain_folder(entry)
             and all(map(_category_folder, entry.iterdir()))
         ):
@@ -154,11 +169,27 @@ def _plain_folder(path: Path) -> bool:
 
 
 def _category_folder(path: Path) -> bool:
-    """A folder of files that pfnet predict writes: predictions, or ones whose atomic write
-    was interrupted (``.<name>.<hex>.tmp.npy``)."""
+    """A folder (not a link) of files that pfnet predict writes: predictions, or ones whose
+    atomic write was interrupted (``.<name>.<hex>.tmp.npy``)."""
     return _plain_folder(path) and all(
-        f.suffix == ".npy" and _plain_file(f) for f in path.iterdir()
+        f.suffix == ".npy"
+        and _plain_file(f)
+        and (not f.name.startswith(".") or _PREDICTION_TMP.fullmatch(f.name) is not None)
+        for f in path.iterdir()
     )
+
+
+def _recorded_categories(record: Path) -> set[str] | None:
+    """The category folders a ``predictions.json`` names (None when it names none: records
+    of pfnet versions before it did)."""
+    try:
+        info = json.loads(record.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    names = info.get("categories") if isinstance(info, dict) else None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        return None
+    return set(names)
 
 
 def _recorded_run(record: Path) -> dict[str, Any] | None:
@@ -218,6 +249,7 @@ def open_prediction_folder(
         "data": str(Path(data_dir).resolve()),
         "split": split,
         "protocol": protocol,
+        "categories": sorted(categories),  # the folders --overwrite may replace
     }
     with atomic_path(out / _RECORD) as tmp:
         tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
@@ -358,6 +390,7 @@ def predict_split(
         "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,
+        "categories": sorted(categories),
         "protocol": {
             "name": "test",
             "missing_ratio": ratio,
@@ -519,6 +552,7 @@ def predict_benchmark(
         "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,
+        "categories": sorted(categories),
         "protocol": {
             "name": chosen.name,
             "missing_ratio": ratio,
@@ -626,6 +660,7 @@ def predict_kitti(
         "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,
+        "categories": sorted(categories),
         "protocol": {
             "name": "kitti",
             "missing_ratio": None,

@@ -5,6 +5,9 @@ own reader accepts, and ``predict --out`` writing into a data set or another run
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -155,6 +158,29 @@ def test_predict_refuses_another_runs_folder_unless_overwrite(tiny_dataset, tmp_
     assert sorted(str(p.relative_to(out)) for p in out.glob("*/*.npy")) == want
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
     assert json.loads((out / "predictions.json").read_text())["split"] == "val"
+    # audit 11: folders the record does not name, hidden files and look-alike leftovers are
+    # the user's; --overwrite refuses them and deletes nothing
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    for planted in ("mine/my_scan.npy", ".pfnet-replaced-mine/chair/a.npy"):
+        (out / planted).parent.mkdir(parents=True)
+        (out / planted).write_bytes(b"mine")
+    (out / "emptyuser").mkdir()
+    category = max(p for p in out.iterdir() if p.is_dir() and p.name > "mine")  # named last
+    (category / ".x.npy").write_bytes(b"mine")
+    for name in (".pfnet-replaced-mine", "emptyuser", "mine", category.name):
+        planted = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+        assert main([*args, "--split", "test", "--overwrite"]) == 1
+        assert f"holds files pfnet predict did not write ({name}" in capsys.readouterr().err
+        assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == planted
+        victim = out / name if name != category.name else category / ".x.npy"
+        (shutil.rmtree if victim.is_dir() else Path.unlink)(victim)
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
+    # a record that does not name its categories (older pfnet) is not replaced
+    record = json.loads((out / "predictions.json").read_text())
+    del record["categories"]
+    (out / "predictions.json").write_text(json.dumps(record))
+    assert main([*args, "--split", "test", "--overwrite"]) == 1
+    assert "does not name its categories (an older pfnet wrote it)" in capsys.readouterr().err
     # an unreadable record is not replaced
     (out / "predictions.json").write_text("{not json")
     assert main([*args, "--split", "test", "--overwrite"]) == 1
