@@ -368,6 +368,27 @@ def test_reproduce_in_steps_side_by_side_on_other_training_data(tmp_path, tiny_d
     assert main(argv) == 0
     assert "mlp-25-3steps-seed0: already trained (3 steps)" in capfd.readouterr().out
     assert main(["reproduce", "--out", str(out), "--data", str(tiny_dataset), "--report-only"]) == 0
+    # Audit 11: runs trained on another data set are not taken as trained on this one, and
+    # training data of another point count is refused before any training.
+    from pfnet.data import prepare_dataset
+
+    for name, points, seed in (("other", 512, 1), ("sparse", 256, 0)):
+        prepare_dataset(
+            None,
+            tmp_path / name,
+            format="procedural",
+            points=points,
+            seed=seed,
+            count=3,
+            categories=["chair"],
+            workers=1,
+            progress=False,
+        )
+    rest = argv[: argv.index("--train-data")] + ["--jobs", "1"]
+    assert main([*rest, "--train-data", str(tmp_path / "other")]) == 1
+    assert "holds a run trained on another data set" in capfd.readouterr().err
+    assert main([*rest, "--train-data", str(tmp_path / "sparse")]) == 1
+    assert "holds clouds of 256 points, the study's data set" in capfd.readouterr().err
 
 
 def test_reproduce_length_and_job_options_are_checked(tmp_path, capsys):
@@ -378,6 +399,7 @@ def test_reproduce_length_and_job_options_are_checked(tmp_path, capsys):
         (["--steps", "1", "2", "3", "4", "5"], "--steps: at most 4 run lengths"),
         (["--steps", "5", "--epochs", "3"], "--epochs and --steps size the runs two ways"),
         (["--jobs", "0"], "--jobs must be between 1 and 64; got 0"),
+        (["--steps", "100000001"], "--steps: at most 100,000,000 steps a run"),
     ):
         assert main([*out, *extra]) == 1
         assert problem in capsys.readouterr().err

@@ -100,6 +100,7 @@ def _forged(record: dict, edit) -> dict:
         ),
         (lambda r: r["runs"].pop(), "the runs are not those of a study"),
         (lambda r: r["runs"][2].__setitem__("name", "/etc"), "the runs are not those of a study"),
+        (lambda r: r["runs"][0].pop("steps"), "runs must all have steps (a study sized in steps)"),
         (lambda r: r.__setitem__("runs", r["runs"] * 120), f"a study has at most {MAX_RUNS}"),
         (lambda r: r.__setitem__("seeds", list(range(40))), "seeds must be a list of 1 to 30"),
         (lambda r: r["dataset"].__setitem__("credits", [1]), "dataset.credits must be a list"),
@@ -164,3 +165,21 @@ def test_reproduce_refuses_a_data_set_without_validation_shapes(tmp_path: Path, 
     assert f"data set {data} has no shapes in its val split" in err
     assert "Prepare it again with a larger validation" in err and "Traceback" not in err
     assert not out.exists()  # refused before any training
+
+
+@needs_results
+def test_publish_refuses_run_files_that_are_links(tmp_path: Path) -> None:
+    """Audit 11: a run file planted as a link published its target's contents."""
+    from pfnet.errors import DataError
+    from pfnet.study import publish
+
+    out = tmp_path / "results"
+    shutil.copytree(RESULTS, out)
+    secret = tmp_path / "outside.txt"
+    secret.write_text("not for publication")
+    run = next((out / "runs").iterdir())
+    (run / "eval-missing.json").unlink()
+    (run / "eval-missing.json").symlink_to(secret)
+    with pytest.raises(DataError, match="goes through a link"):
+        publish(out, tmp_path / "pub")
+    assert not (tmp_path / "pub").exists()

@@ -45,6 +45,7 @@ from pfnet.study.runs import (
     MAX_LENGTHS,
     MAX_RATIOS,
     MAX_SEEDS,
+    MAX_STEPS,
     STUDY_MODELS,
     STUDY_RATIOS,
     STUDY_SEEDS,
@@ -158,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--steps: run lengths must be different integers >= 1")
         if len(args.steps) > MAX_LENGTHS:
             raise ConfigError(f"--steps: at most {MAX_LENGTHS} run lengths")
+        if max(args.steps) > MAX_STEPS:
+            raise ConfigError(f"--steps: at most {MAX_STEPS:,} steps a run")
         if args.epochs is not None:
             raise ConfigError("--epochs and --steps size the runs two ways; give one of them")
     if not 1 <= args.jobs <= MAX_JOBS:

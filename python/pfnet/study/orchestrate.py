@@ -81,6 +81,12 @@ def reproduce(
         train_manifest = read_manifest(train_data)
         if not train_manifest["splits"].get("train", {}).get("total"):
             raise DataError(f"training data set {train_data} has no shapes in its train split")
+        if train_manifest["points"] != manifest["points"]:  # before hours of training
+            raise DataError(
+                f"training data set {train_data} holds clouds of {train_manifest['points']} "
+                f"points, the study's data set {data_dir} clouds of {manifest['points']}: a "
+                "model trained on one cannot be tested on the other"
+            )
 
     records = []
     runs = study_runs(models, ratios, seeds, list(lengths) if lengths else [None])

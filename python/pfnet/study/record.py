@@ -21,6 +21,7 @@ from pfnet.study.runs import (
     MAX_RATIOS,
     MAX_RUNS,
     MAX_SEEDS,
+    MAX_STEPS,
     STUDY_MODELS,
     study_runs,
 )
@@ -31,10 +32,6 @@ MAX_RESULTS_BYTES = 64 << 20
 
 # The most epochs a run's curve may list (the paper trains 200).
 MAX_EPOCHS = 100_000
-
-
-# The longest run a record may list, in optimiser steps.
-MAX_STEPS = 100_000_000
 
 
 class _Malformed(ValueError):
@@ -243,6 +240,10 @@ def check_results(results: Any) -> None:
         len(ratios) <= MAX_RATIOS, f"{len(ratios)} missing ratios; a study has at most {MAX_RATIOS}"
     )
     lengths = list(dict.fromkeys(r.get("steps") for r in first))
+    _need(
+        lengths == [None] or None not in lengths,
+        "runs must all have steps (a study sized in steps) or none",
+    )
     _need(len(lengths) <= MAX_LENGTHS, f"{len(lengths)} run lengths; at most {MAX_LENGTHS}")
     expected = [
         (r.name, r.setting, r.model, r.missing_ratio, r.seed, r.steps)

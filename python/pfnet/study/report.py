@@ -430,8 +430,14 @@ def publish(out: Path, dest: Path) -> None:
             raise DataError(f"cannot publish: {folder} is a link; remove it first")
     for run in names:  # every source first: a failure must not leave half a publication
         for name in PUBLISHED_RUN_FILES:
-            if not (out / "runs" / run / name).is_file():
-                raise DataError(f"cannot publish: {out / 'runs' / run / name} does not exist")
+            source = out / "runs" / run / name
+            if any(p.is_symlink() for p in (source, source.parent, source.parent.parent)):
+                raise DataError(
+                    f"cannot publish: {source} goes through a link (its target "
+                    "would be published); pfnet did not write it"
+                )
+            if not source.is_file():
+                raise DataError(f"cannot publish: {source} does not exist")
 
     def copy(source: Path, target: Path) -> None:
         with atomic_path(target) as tmp:

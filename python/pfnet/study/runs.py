@@ -42,6 +42,10 @@ MAX_RATIOS = 3 * len(STUDY_RATIOS)
 MAX_LENGTHS = 4
 
 
+# The longest run a study trains or a record may list, in optimiser steps.
+MAX_STEPS = 100_000_000
+
+
 MAX_RUNS = (len(STUDY_MODELS) + MAX_RATIOS - 1) * MAX_SEEDS * MAX_LENGTHS
 
 
@@ -225,7 +229,20 @@ def train_run(
                 f"{run_dir} holds a run with another configuration; delete it or choose "
                 "another results folder"
             )
-        if _finished(run_dir, config) and not _interrupted(run_dir):
+        from pfnet.checkpoint import read_checkpoint
+        from pfnet.training.resume import data_identity
+
+        state = read_checkpoint(run_dir / "last.pt", "cpu")
+        stored, current = state.get("data") or {}, data_identity(data_dir)
+        if (
+            stored.get("kind") == current["kind"]
+            and stored.get("fingerprint") != current["fingerprint"]
+        ):
+            raise ConfigError(
+                f"{run_dir} holds a run trained on another data set ({stored.get('path')}, not "
+                f"{data_dir}); delete it or choose another results folder"
+            )
+        if _finished(run_dir, config) and not state.get("batches_done"):  # not mid-epoch
             log(f"{run.name}: already trained ({length})")
             return
         of = config.epochs if config.steps is None else f"a run of {length}"
@@ -238,13 +255,6 @@ def train_run(
         summary = train(config, data_dir, run_dir, device=device, progress=progress, **sources)
     if summary["interrupted"]:
         raise KeyboardInterrupt
-
-
-def _interrupted(run_dir: Path) -> bool:
-    """True when ``last.pt`` was saved mid-epoch (Ctrl-C)."""
-    from pfnet.checkpoint import read_checkpoint
-
-    return bool(read_checkpoint(run_dir / "last.pt", "cpu").get("batches_done"))
 
 
 def evaluate_run(run: StudyRun, data_dir: Path, run_dir: Path, device: str) -> dict[str, Any]:
