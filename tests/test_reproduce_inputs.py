@@ -101,6 +101,10 @@ def _forged(record: dict, edit) -> dict:
         (lambda r: r["runs"].pop(), "the runs are not those of a study"),
         (lambda r: r["runs"][2].__setitem__("name", "/etc"), "the runs are not those of a study"),
         (lambda r: r["runs"][0].pop("steps"), "runs must all have steps (a study sized in steps)"),
+        (
+            lambda r: r["train_dataset"].__setitem__("source", "\x1b[31mred"),
+            "train_dataset.source must be printable text",
+        ),
         (lambda r: r.__setitem__("runs", r["runs"] * 120), f"a study has at most {MAX_RUNS}"),
         (lambda r: r.__setitem__("seeds", list(range(40))), "seeds must be a list of 1 to 30"),
         (lambda r: r["dataset"].__setitem__("credits", [1]), "dataset.credits must be a list"),

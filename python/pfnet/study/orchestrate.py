@@ -176,8 +176,14 @@ def train_side_by_side(
                     if process.exitcode != 0:
                         failed.append(name)
     except KeyboardInterrupt:
-        for _, process in running:  # each saves its last.pt on the same Ctrl-C
-            process.join()
+        try:
+            for _, process in running:  # each saves its last.pt on the same Ctrl-C
+                process.join()
+        except KeyboardInterrupt:  # a second Ctrl-C: abort them (last.pt files stay whole)
+            for _, process in running:
+                process.kill()
+            for _, process in running:
+                process.join()
         raise
     if failed:
         raise DataError(

@@ -168,7 +168,11 @@ def _run(run: Any, where: str, first: dict[str, Any] | None) -> None:
 def _dataset(value: Any, where: str) -> None:
     """Check a data set's summary (``_dataset_summary``)."""
     data = _object(value, where)
-    _string(data, "source", where)
+    source = _string(data, "source", where)
+    _need(  # written into the report as it is
+        source.isprintable() and len(source) <= 200,
+        f"{where}.source must be printable text of at most 200 characters",
+    )
     _int(data, "points", where, low=1)
     splits = _object(data.get("splits"), f"{where}.splits")
     _need(
