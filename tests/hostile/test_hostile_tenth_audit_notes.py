@@ -232,3 +232,18 @@ def test_npy_rows_are_bounded_by_the_bytes_they_span(tmp_path):
     small = tmp_path / "ok.npy"
     np.save(small, np.ones((1000, 16), np.float32))
     assert read_point_cloud(small).shape == (1000, 3)
+
+
+@pytest.mark.parametrize(("version", "length"), [(b"\x01\x00", 65_535), (b"\x02\x00", 2**32 - 1)])
+def test_npy_header_lengths_beyond_the_file_are_refused_before_reading(tmp_path, version, length):
+    """Audit 11 (N7): numpy read the header's declared length at once: 4 GiB from 20 bytes."""
+    import struct
+
+    from pfnet.errors import DataError
+    from pfnet.io import read_point_cloud
+
+    forged = tmp_path / "forged.npy"
+    size = "<H" if version == b"\x01\x00" else "<I"
+    forged.write_bytes(b"\x93NUMPY" + version + struct.pack(size, length) + b"{'descr'")
+    with pytest.raises(DataError, match=f"its header claims {length} bytes, the file holds 8"):
+        read_point_cloud(forged)

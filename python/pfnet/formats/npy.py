@@ -29,6 +29,11 @@ _HEADER_ERRORS = (
 )
 
 
+# A .npy header is a short Python literal (numpy writes under 200 bytes, and reads at most
+# 10,000 unless told otherwise).
+MAX_HEADER_BYTES = 1 << 16
+
+
 def check_npy_header(
     name: str, fh, available: int, *, max_chars: int | None = None
 ) -> tuple[tuple[int, ...], np.dtype]:
@@ -45,10 +50,24 @@ def check_npy_header(
 
     try:
         version = npy_format.read_magic(fh)
+        # The header's own length first: numpy reads that many bytes at once (a forged 4 GiB
+        # length in a tiny file was a 4 GiB allocation).
+        start = fh.tell()
+        size_bytes = 2 if version == (1, 0) else 4
+        header_len = int.from_bytes(fh.read(size_bytes), "little")
+        if header_len > min(available - start - size_bytes, MAX_HEADER_BYTES):
+            raise DataError(
+                f"{name}: not a valid .npy array file (its header claims {header_len} bytes, "
+                f"the file holds {max(available - start - size_bytes, 0)} after it; at most "
+                f"{MAX_HEADER_BYTES} are read)"
+            )
+        fh.seek(start)
         if version == (1, 0):
             shape, _, dtype = npy_format.read_array_header_1_0(fh)
         else:
             shape, _, dtype = npy_format.read_array_header_2_0(fh)
+    except DataError:
+        raise
     except _HEADER_ERRORS as err:
         said = err.args[0] if err.args and isinstance(err.args[0], str) else ""
         detail = said.splitlines()[0][:120] if said.strip() else type(err).__name__
