@@ -205,15 +205,46 @@ fn chamfer_py<'py>(
     ))
 }
 
-/// For every completion (C, N, 3), the smallest CD-L2 to any reference cloud (R, M, 3) and
-/// that reference's index: float64 (C,), int64 (C,) (KITTI's minimal matching distance).
+/// For every completion, the smallest CD-L2 to any reference cloud (R, M, 3) and that
+/// reference's index: float64 (C,), int64 (C,) (KITTI's minimal matching distance). The
+/// completions may differ in size: their points one after another (P, 3), and how many each
+/// has (C,), so every reference's tree is built once for all of them.
 #[pyfunction]
 fn minimal_matching<'py>(
     py: Python<'py>,
-    completions: PyReadonlyArray3<'py, f32>,
+    points: PyReadonlyArray2<'py, f32>,
+    counts: Vec<usize>,
     references: PyReadonlyArray3<'py, f32>,
 ) -> PyResult<Pair<'py, PyArray1<f64>, PyArray1<i64>>> {
-    let comps = clouds("completions", &completions)?;
+    let shape = points.shape();
+    if shape[1] != 3 {
+        let got = shape.to_vec();
+        return Err(GeometryError::Shape {
+            arg: "completions",
+            expected: "(P, 3)",
+            got,
+        }
+        .into());
+    }
+    let all = c_order("completions", &points)?.as_chunks::<3>().0;
+    if counts.contains(&0) {
+        return Err(GeometryError::Empty { arg: "completions" }.into());
+    }
+    let total = counts.iter().try_fold(0usize, |a, &n| a.checked_add(n));
+    if total != Some(all.len()) {
+        return Err(GeometryError::out_of_range(
+            "counts",
+            format!("must add up to the {} completion points", all.len()),
+        )
+        .into());
+    }
+    let mut comps = Vec::with_capacity(counts.len());
+    let mut rest = all;
+    for &n in &counts {
+        let (cloud, tail) = rest.split_at(n);
+        comps.push(cloud);
+        rest = tail;
+    }
     let refs = clouds("references", &references)?;
     let found = py.detach(|| crate::metrics::minimal_matching(&comps, &refs))?;
     let (dist, index): (Vec<f64>, Vec<i64>) = found.into_iter().map(|(d, j)| (d, j as i64)).unzip();

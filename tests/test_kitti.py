@@ -311,3 +311,111 @@ def test_kitti_option_errors(kitti_tree, references, tiny_dataset, tmp_path, cap
         from pfnet.evaluation import evaluate_benchmark
 
         evaluate_benchmark(pred, data, "kitti")
+
+
+# ---------------------------------------------------------------- MMD's branch and bound
+
+
+def every_pair_cd(comp: np.ndarray, refs: np.ndarray) -> np.ndarray:
+    """CD-L2 of ``comp`` to every reference, by float64 brute force."""
+    return np.array(
+        [
+            (nearest_distances(comp, ref) ** 2).mean() + (nearest_distances(ref, comp) ** 2).mean()
+            for ref in refs
+        ]
+    )
+
+
+def one_at_a_time(comps: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pruned search's own exact value of every pair (one reference per call: nothing to
+    prune), reduced to the minimum and lowest index among ties, as every pair would be."""
+    from pfnet.metrics import minimal_matching_distance
+
+    every = np.stack(
+        [minimal_matching_distance(comps, refs[j : j + 1])[0] for j in range(len(refs))]
+    )
+    return every.min(axis=0), every.argmin(axis=0)
+
+
+def boxy_cars(rng: np.random.Generator, count: int, n: int) -> np.ndarray:
+    """Cars as points on boxes of close proportions: the nearest and the runners-up differ by
+    little, as the real reference cars do."""
+    clouds = []
+    for _ in range(count):
+        size = rng.uniform([3.8, 1.6, 1.2], [4.6, 2.0, 1.6])
+        axis = rng.integers(0, 3, n)
+        p = rng.uniform(-0.5, 0.5, (n, 3))
+        p[np.arange(n), axis] = rng.choice([-0.5, 0.5], n)
+        clouds.append(p * size / 4.0)
+    return np.stack(clouds).astype(np.float32)
+
+
+def test_mmd_search_equals_every_pair_bit_for_bit():
+    from pfnet.metrics import minimal_matching_distance
+
+    rng = np.random.default_rng(17)
+    refs = boxy_cars(rng, 40, 600)
+    comps = np.stack(
+        [refs[j] * rng.uniform(0.98, 1.02, 3) for j in (4, 4, 31, 12, 0)]
+        + [boxy_cars(rng, 1, 600)[0]]
+    ).astype(np.float32)
+    dist, index = minimal_matching_distance(comps, refs)
+    want, want_index = one_at_a_time(comps, refs)
+    np.testing.assert_array_equal(index, want_index)
+    np.testing.assert_array_equal(dist, want)  # the same float64 bits
+    for k, comp in enumerate(comps):
+        brute = every_pair_cd(comp, refs)
+        assert index[k] == int(np.argmin(brute))
+        assert dist[k] == pytest.approx(brute.min(), rel=1e-6)
+
+
+def test_mmd_adversarial_sets():
+    from pfnet.metrics import minimal_matching_distance
+
+    rng = np.random.default_rng(3)
+    car = boxy_cars(rng, 1, 500)[0]
+    far = car + np.float32(50.0)
+    refs = np.stack([far, car, far * 1.01, car, car]).astype(np.float32)
+    # a completion equal to three identical references: distance 0, the lowest of them
+    dist, index = minimal_matching_distance(car[None], refs)
+    assert (dist[0], index[0]) == (0.0, 1)
+    # every reference far from the completions; completions of one repeated point
+    comps = np.stack([car + np.float32(-200.0), np.full((500, 3), 7.0, np.float32)])
+    dist, index = minimal_matching_distance(comps, refs)
+    want, want_index = one_at_a_time(comps, refs)
+    np.testing.assert_array_equal(index, want_index)
+    np.testing.assert_array_equal(dist, want)
+    # tiny clouds (no coarse levels) and collinear ones
+    tiny_refs = rng.normal(size=(30, 3, 3)).astype(np.float32)
+    tiny_comps = rng.normal(size=(4, 2, 3)).astype(np.float32)
+    line = np.zeros((20, 300, 3), np.float32)
+    line[:, :, 0] = np.linspace(0, 1, 300) * rng.uniform(0.5, 1.5, (20, 1))
+    for comps, refs in ((tiny_comps, tiny_refs), (line[:3] * 1.01, line)):
+        dist, index = minimal_matching_distance(comps, refs)
+        want, want_index = one_at_a_time(comps, refs)
+        np.testing.assert_array_equal(index, want_index)
+        np.testing.assert_array_equal(dist, want)
+        for k, comp in enumerate(comps):
+            assert dist[k] == pytest.approx(every_pair_cd(comp, refs).min(), rel=1e-6, abs=1e-12)
+
+
+def test_mmd_takes_completions_of_different_sizes():
+    from pfnet.metrics import minimal_matching_distance
+
+    rng = np.random.default_rng(8)
+    refs = boxy_cars(rng, 12, 400)
+    comps = [boxy_cars(rng, 1, n)[0] for n in (300, 17, 400, 1)]
+    dist, index = minimal_matching_distance(comps, refs)
+    for k, comp in enumerate(comps):
+        one = minimal_matching_distance(comp[None], refs)
+        assert (dist[k], index[k]) == (one[0][0], one[1][0])
+    empty = minimal_matching_distance([], refs)
+    assert empty[0].shape == (0,) and empty[1].dtype == np.int64
+    with pytest.raises(ValueError, match=r"completions\[1\] must be an \(N, 3\) array"):
+        minimal_matching_distance([comps[0], comps[1][:, :2]], refs)
+    with pytest.raises(ValueError, match="completions"):
+        minimal_matching_distance([comps[0], np.zeros((0, 3), np.float32)], refs)
+    from pfnet._core import minimal_matching
+
+    with pytest.raises(ValueError, match="counts must add up to the 5 completion points"):
+        minimal_matching(np.zeros((5, 3), np.float32), [2, 2], refs)

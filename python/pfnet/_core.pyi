@@ -22,7 +22,7 @@ def chamfer(
     pred: NDArray[np.float32], gt: NDArray[np.float32]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
 def minimal_matching(
-    completions: NDArray[np.float32], references: NDArray[np.float32]
+    points: NDArray[np.float32], counts: list[int], references: NDArray[np.float32]
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]: ...
 def crop_count_f32(
     points: NDArray[np.float32], viewpoints: NDArray[np.float64], n_missing: int

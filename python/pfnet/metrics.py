@@ -183,11 +183,14 @@ def minimal_matching_distance(completions, references) -> tuple[np.ndarray, np.n
     mean_R d(r, C)²``, PoinTr's ``ChamferDistanceL2``) to any reference cloud (ShapeNet's
     cars), and which one. The MMD is the mean of the first array (×1000 in papers).
 
-    Exact, as computing every pair, but each completion's search drops a reference as soon
-    as its partial sums exceed the best distance found (the Rust core, all cores).
+    Exact, as computing every pair (the same float64 value and the lowest index among equal
+    distances), but a branch and bound in the Rust core (all cores): cheap lower bounds of
+    each pair's distance (a distance grid of the completion, coarse samples of it) rule out
+    most references without computing them; see ``rust/metrics.rs``.
 
     Args:
-        completions: float32 ``(C, N, 3)``.
+        completions: float32 ``(C, N, 3)``, or a list of ``(N_i, 3)`` arrays (sizes may
+            differ; every reference's KD-tree is still built once).
         references: float32 ``(R, M, 3)``.
 
     Returns:
@@ -195,9 +198,22 @@ def minimal_matching_distance(completions, references) -> tuple[np.ndarray, np.n
     """
     from pfnet._core import minimal_matching
 
-    comps = np.ascontiguousarray(completions, dtype=np.float32)
     refs = np.ascontiguousarray(references, dtype=np.float32)
-    for label, array in (("completions", comps), ("references", refs)):
-        if array.ndim != 3 or array.shape[2] != 3:
-            raise ValueError(f"{label} must be a (B, N, 3) array, got shape {array.shape}")
-    return minimal_matching(comps, refs)
+    if refs.ndim != 3 or refs.shape[2] != 3:
+        raise ValueError(f"references must be a (B, N, 3) array, got shape {refs.shape}")
+    if isinstance(completions, np.ndarray):
+        comps = np.ascontiguousarray(completions, dtype=np.float32)
+        if comps.ndim != 3 or comps.shape[2] != 3:
+            raise ValueError(f"completions must be a (B, N, 3) array, got shape {comps.shape}")
+        counts = [comps.shape[1]] * comps.shape[0]
+        points = comps.reshape(-1, 3)
+    else:
+        clouds = [np.asarray(c, dtype=np.float32) for c in completions]
+        for k, cloud in enumerate(clouds):
+            if cloud.ndim != 2 or cloud.shape[1] != 3:
+                raise ValueError(f"completions[{k}] must be an (N, 3) array, got {cloud.shape}")
+        counts = [len(c) for c in clouds]
+        points = np.ascontiguousarray(
+            np.concatenate(clouds) if clouds else np.zeros((0, 3)), dtype=np.float32
+        )
+    return minimal_matching(points, counts, refs)
