@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -73,6 +74,13 @@ def test_demo_argument_errors(tmp_path, capsys):
     assert "--epochs must be at least 1" in capsys.readouterr().err
     assert main(["demo", "--out", out, "--source", str(tmp_path / "none")]) == 1
     assert "does not exist" in capsys.readouterr().err
+    pytest.importorskip("torch")  # the data set is built after the device is resolved
+    # Audit 11 (N4): 2 shapes a category leave no test split; refused before any training.
+    args = ["demo", "--out", out, "--count", "2", "--points", "512", "--procedural"]
+    assert main([*args, "--device", "cpu"]) == 1
+    err = capsys.readouterr().err
+    assert "has no shapes in its test split; the demo trains on one and completes" in err
+    assert not (Path(out) / "run").exists()
 
 
 def test_the_budget_is_filled_with_epochs_timed_after_start_up():

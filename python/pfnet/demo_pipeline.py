@@ -23,7 +23,7 @@ from pathlib import Path
 
 from pfnet.data import SWEETHOME3D_PATH
 from pfnet.data.sources import pick_source
-from pfnet.errors import ConfigError
+from pfnet.errors import ConfigError, DataError
 
 SWEETHOME3D_FURNITURE: Path = SWEETHOME3D_PATH
 INSTALL_HINT = "sudo apt-get install sweethome3d-furniture"
@@ -164,6 +164,12 @@ def run_demo(
         )
         print(report.summary())
     manifest = read_manifest(data_dir)
+    empty = [n for n in ("train", "test") if not manifest["splits"].get(n, {}).get("total")]
+    if empty:  # before minutes of training, not after them
+        raise DataError(
+            f"the data set {data_dir} has no shapes in its {' or '.join(empty)} split; the "
+            "demo trains on one and completes the other: give it more shapes (--count)"
+        )
 
     _step(2, f"training the small PF-Net preset on {device}")
     config = preset_config("small").replace(seed=seed)
