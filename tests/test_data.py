@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import zipfile
 from pathlib import Path
 
@@ -142,6 +143,9 @@ def test_load_split_errors(tmp_path: Path, tiny_dataset: Path) -> None:
     out = _procedural(tmp_path / "ds")
     (out / "val.npz").unlink()
     with pytest.raises(DataError, match="val.npz: missing split file"):
+        load_split(out, "val")
+    os.mkfifo(out / "val.npz")  # audit 11 (N5): there, but not a file; never opened
+    with pytest.raises(DataError, match="val.npz: not a regular file"):
         load_split(out, "val")
     (out / "test.npz").write_bytes(b"not a zip")
     with pytest.raises(DataError, match="test.npz: cannot read the split"):

@@ -303,7 +303,8 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     manifest = read_manifest(root)
     path = Path(root) / f"{split}.npz"
     if not path.is_file():
-        raise DataError(f"{path}: missing split file")
+        there = path.exists() or path.is_symlink()  # a pipe, a device, a folder, a broken link
+        raise DataError(f"{path}: {'not a regular file' if there else 'missing split file'}")
     record = split_record_of(manifest, split, Path(root) / MANIFEST_NAME)
     try:
         _check_members(
