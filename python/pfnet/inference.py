@@ -221,7 +221,8 @@ def open_prediction_folder(
 
     The folders ``replaced`` (another run's, :func:`check_prediction_folder`) are first moved
     into one hidden folder in ``out`` (a rename each), then the record is written, then they
-    are deleted: an interrupted run never leaves another run's files beside its record.
+    are deleted: an interrupted run never leaves another run's files beside its record. Such
+    a hidden folder left by an earlier, interrupted run is deleted too.
 
     Raises:
         DataError: A category folder is a link out of ``out``.
@@ -254,6 +255,13 @@ def open_prediction_folder(
     with atomic_path(out / _RECORD) as tmp:
         tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
     shutil.rmtree(trash, ignore_errors=True)
+    for leftover in out.iterdir():  # of a replacement interrupted before its last step
+        if (
+            _REPLACED_FOLDER.fullmatch(leftover.name)
+            and _plain_folder(leftover)
+            and all(map(_category_folder, leftover.iterdir()))
+        ):
+            shutil.rmtree(leftover, ignore_errors=True)
     for category in categories:
         (out / category).mkdir(exist_ok=True)
 

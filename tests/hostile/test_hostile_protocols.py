@@ -185,3 +185,19 @@ def test_predict_refuses_another_runs_folder_unless_overwrite(tiny_dataset, tmp_
     (out / "predictions.json").write_text("{not json")
     assert main([*args, "--split", "test", "--overwrite"]) == 1
     assert "predictions.json cannot be read, so it is not a folder" in capsys.readouterr().err
+
+
+def test_predict_again_removes_the_leftover_of_an_interrupted_replacement(tiny_dataset, tmp_path):
+    """Audit 11 (N8): a same-run predict left the hidden folder of an interrupted overwrite."""
+    checkpoint = _small_checkpoint(tmp_path / "m.pt", 512)
+    out = tmp_path / "pred"
+    args = ["predict", "--checkpoint", str(checkpoint), "--data", str(tiny_dataset)]
+    args += ["--out", str(out), "--device", "cpu"]
+    assert main(args) == 0
+    leftover = out / ".pfnet-replaced-0123456789ab" / "chair" / "old.npy"
+    lookalike = out / ".pfnet-replaced-mine" / "chair" / "mine.npy"
+    for path in (leftover, lookalike):
+        path.parent.mkdir(parents=True)
+        path.write_bytes(b"x")
+    assert main(args) == 0
+    assert not leftover.parent.parent.exists() and lookalike.read_bytes() == b"x"
