@@ -266,6 +266,47 @@ def open_prediction_folder(
         (out / category).mkdir(exist_ok=True)
 
 
+def write_record(
+    out: Path,
+    checkpoint: Any,
+    data_dir: str | os.PathLike[str],
+    split: str,
+    categories: list[str],
+    runtime: str,
+    device: str,
+    *,
+    protocol: dict[str, Any],
+    model: dict[str, Any],
+    n_samples: int,
+    **extra: Any,
+) -> dict[str, Any]:
+    """Write the ``predictions.json`` of a finished prediction run into ``out``; returns it.
+
+    It names the checkpoint, data set, split, the category folders (which ``--overwrite``
+    may replace), the protocol and the model; ``extra`` keys (``skipped``...) come after
+    the sample count.
+    """
+    from pfnet.io import atomic_path
+    from pfnet.shipped import describe
+
+    info = {
+        "complete": True,
+        "checkpoint": describe(checkpoint),
+        "data": str(Path(data_dir).resolve()),
+        "split": split,
+        "categories": sorted(categories),
+        "protocol": protocol,
+        "model": model,
+        "n_samples": n_samples,
+        **extra,
+        "device": device,
+        "runtime": runtime,
+    }
+    with atomic_path(out / _RECORD) as tmp:
+        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
+    return info
+
+
 def predict_missing(
     model: Any, partial: np.ndarray, batch_size: int, device: str, *, source: Any = "in use"
 ) -> np.ndarray:
@@ -343,9 +384,9 @@ def predict_split(
             or a model output refused by :func:`check_detail`.
     """
     from pfnet.data import load_split, test_protocol_crop
-    from pfnet.io import atomic_path, refuse_overlap, save_npy
+    from pfnet.io import refuse_overlap, save_npy
     from pfnet.runtimes import load_generator
-    from pfnet.shipped import describe, resolve_checkpoint
+    from pfnet.shipped import resolve_checkpoint
 
     checkpoint = resolve_checkpoint(checkpoint)
     refuse_overlap(out_dir, [data_dir, checkpoint], flag="prediction folder")
@@ -393,32 +434,29 @@ def predict_split(
     )
     for cat, name, cloud in zip(clouds.category, clouds.name, detail, strict=True):
         save_npy(out / str(cat) / f"{name}.npy", cloud)
-    info = {
-        "complete": True,
-        "checkpoint": describe(checkpoint),
-        "data": str(Path(data_dir).resolve()),
-        "split": split,
-        "categories": sorted(categories),
-        "protocol": {
+    return write_record(
+        out,
+        checkpoint,
+        data_dir,
+        split,
+        categories,
+        loaded.runtime,
+        device,
+        protocol={
             "name": "test",
             "missing_ratio": ratio,
             "n_points": int(points.shape[1]),
             "n_missing": int(removed.shape[1]),
             "viewpoint": "VIEWPOINTS[i % 5] for sample i in split order",
         },
-        "model": {
+        model={
             "name": config.model,
             "n_points": config.n_points,
             "missing_ratio": trained_ratio,
             "n_predicted": int(detail.shape[1]),
         },
-        "n_samples": len(clouds),
-        "device": device,
-        "runtime": loaded.runtime,
-    }
-    with atomic_path(out / "predictions.json") as tmp:
-        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
-    return info
+        n_samples=len(clouds),
+    )
 
 
 def predict_benchmark(
@@ -462,10 +500,10 @@ def predict_benchmark(
     """
     from pfnet.completion import network_input, normalisation
     from pfnet.data import load_split
-    from pfnet.io import atomic_path, refuse_overlap, save_npy
+    from pfnet.io import refuse_overlap, save_npy
     from pfnet.protocols import get_protocol, shapenet_crop
     from pfnet.runtimes import load_generator
-    from pfnet.shipped import describe, resolve_checkpoint
+    from pfnet.shipped import resolve_checkpoint
 
     chosen = get_protocol(protocol)
     if chosen.prediction != "complete":
@@ -555,35 +593,32 @@ def predict_benchmark(
         raise DataError(
             f"no shape of split {split!r} of {data_dir} could be completed ({skipped[0]})"
         )
-    info = {
-        "complete": True,
-        "checkpoint": describe(checkpoint),
-        "data": str(Path(data_dir).resolve()),
-        "split": split,
-        "categories": sorted(categories),
-        "protocol": {
+    return write_record(
+        out,
+        checkpoint,
+        data_dir,
+        split,
+        categories,
+        loaded.runtime,
+        device,
+        protocol={
             "name": chosen.name,
             "missing_ratio": ratio,
             "n_points": int(clouds.n_points),
             "views": chosen.views,
             "input": "given partial scan" if partials is not None else "PoinTr's 2,048-point crop",
         },
-        "model": {
+        model={
             "name": config.model,
             "n_points": config.n_points,
             "missing_ratio": config.missing_ratio,
             "n_input": n_input,
             "n_predicted": n_predicted,
         },
-        "n_samples": len(clouds) * chosen.views - len(skipped),
-        "skipped": skipped[:MAX_SKIPPED_LISTED],
-        "n_skipped": len(skipped),
-        "device": device,
-        "runtime": loaded.runtime,
-    }
-    with atomic_path(out / "predictions.json") as tmp:
-        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
-    return info
+        n_samples=len(clouds) * chosen.views - len(skipped),
+        skipped=skipped[:MAX_SKIPPED_LISTED],
+        n_skipped=len(skipped),
+    )
 
 
 def predict_kitti(
@@ -622,9 +657,9 @@ def predict_kitti(
     from pfnet.data import load_split
     from pfnet.data.benchmarks import load_partials
     from pfnet.data.kitti import KITTI_INPUT_POINTS, kitti_input, load_boxes
-    from pfnet.io import atomic_path, refuse_overlap, save_npy
+    from pfnet.io import refuse_overlap, save_npy
     from pfnet.runtimes import load_generator
-    from pfnet.shipped import describe, resolve_checkpoint
+    from pfnet.shipped import resolve_checkpoint
 
     if batch_size < 1:
         raise ConfigError(f"batch size must be at least 1, got {batch_size}")
@@ -663,13 +698,15 @@ def predict_kitti(
         for p, t, d, k in zip(given, transforms, detail, keys[start:stop], strict=True):
             save_npy(out / f"{k}.npy", np.concatenate([p, t.invert(d)]).astype(np.float32))
         n_predicted = int(detail.shape[1])
-    info = {
-        "complete": True,
-        "checkpoint": describe(checkpoint),
-        "data": str(Path(data_dir).resolve()),
-        "split": split,
-        "categories": sorted(categories),
-        "protocol": {
+    return write_record(
+        out,
+        checkpoint,
+        data_dir,
+        split,
+        categories,
+        loaded.runtime,
+        device,
+        protocol={
             "name": "kitti",
             "missing_ratio": None,
             "n_points": None,
@@ -678,20 +715,15 @@ def predict_kitti(
             f"{KITTI_INPUT_POINTS} (IFPS)",
             "frame": "PoinTr's normalised object frame (y up, facing +x, one unit long)",
         },
-        "model": {
+        model={
             "name": config.model,
             "n_points": config.n_points,
             "missing_ratio": config.missing_ratio,
             "n_input": n_input,
             "n_predicted": n_predicted,
         },
-        "n_samples": len(cars),
-        "device": device,
-        "runtime": loaded.runtime,
-    }
-    with atomic_path(out / "predictions.json") as tmp:
-        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
-    return info
+        n_samples=len(cars),
+    )
 
 
 def _car_normalisation(points: np.ndarray):
