@@ -36,3 +36,14 @@ def write_pcd(path: Path, points: np.ndarray) -> None:
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(header.encode() + points.tobytes())
+
+
+def naive_fps(points: np.ndarray, n: int) -> np.ndarray:
+    """Farthest point sampling from point 0, one numpy pass a sample (lowest index on ties)."""
+    chosen = [0]
+    dist = ((points - points[0]) ** 2).sum(axis=1)
+    for _ in range(n - 1):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(axis=1))
+    return points[chosen]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from brute import nearest_distances, needs_runtime, write_pcd
+from brute import naive_fps, nearest_distances, needs_runtime, write_pcd
 
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
@@ -47,16 +47,6 @@ def pointr_reference(pred: np.ndarray, gt: np.ndarray, th: float = 0.01) -> dict
         "cd_l2": (d1**2).mean() + (d2**2).mean(),
         "f_score": f,
     }
-
-
-def naive_fps(points: np.ndarray, n: int) -> np.ndarray:
-    chosen = [0]
-    dist = ((points - points[0]) ** 2).sum(axis=1)
-    for _ in range(n - 1):
-        nxt = int(np.argmax(dist))
-        chosen.append(nxt)
-        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(axis=1))
-    return points[chosen]
 
 
 # ---------------------------------------------------------------- trees in the documented layouts

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from brute import nearest_distances, needs_runtime, write_pcd
+from brute import naive_fps, nearest_distances, needs_runtime, write_pcd
 
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
@@ -123,16 +123,6 @@ def pointr_normalize(points: np.ndarray, box: np.ndarray) -> np.ndarray:
     scale = box[3, 0] - box[0, 0]
     cloud = (points.astype(np.float64) - centre) @ rotation / scale
     return cloud @ np.array([[1, 0, 0], [0, 0, 1], [0, 1, 0]])
-
-
-def naive_fps(points: np.ndarray, n: int) -> np.ndarray:
-    chosen = [0]
-    dist = ((points - points[0]) ** 2).sum(axis=1)
-    for _ in range(n - 1):
-        nxt = int(np.argmax(dist))
-        chosen.append(nxt)
-        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(axis=1))
-    return points[chosen]
 
 
 # ---------------------------------------------------------------- pose normalisation
