@@ -47,3 +47,18 @@ def naive_fps(points: np.ndarray, n: int) -> np.ndarray:
         chosen.append(nxt)
         dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(axis=1))
     return points[chosen]
+
+
+def capture_panels(monkeypatch) -> list:
+    """Record the rows every gallery draws (then draw them as usual)."""
+    import pfnet.rendering
+
+    drawn: list = []
+    original = pfnet.rendering.render_panels
+
+    def recording(out, rows, **kwargs):
+        drawn.append(rows)
+        return original(out, rows, **kwargs)
+
+    monkeypatch.setattr(pfnet.rendering, "render_panels", recording)
+    return drawn

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from brute import naive_fps, nearest_distances, needs_runtime, write_pcd
+from brute import capture_panels, naive_fps, nearest_distances, needs_runtime, write_pcd
 
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
@@ -17,7 +17,13 @@ from pfnet.data.benchmarks import load_partials
 from pfnet.errors import ConfigError, DataError
 from pfnet.evaluation import evaluate_benchmark
 from pfnet.metrics import fidelity, minimal_matching_distance, sample_metrics
-from pfnet.protocols import SHAPENET_VIEWPOINTS, get_protocol, shapenet_crop
+from pfnet.protocols import (
+    SHAPENET_SYNSETS,
+    SHAPENET_VIEWPOINTS,
+    category_title,
+    get_protocol,
+    shapenet_crop,
+)
 
 SH3D = Path("/usr/share/sweethome3d/furniture/BlendSwap-CC-0.sh3f")
 
@@ -146,6 +152,13 @@ def test_crop_equals_an_independent_crop_and_fps():
         np.testing.assert_array_equal(shapenet_crop(cloud, ratio, view), naive_fps(kept, 2048))
 
 
+def test_shapenet_synsets_are_named():
+    assert len(SHAPENET_SYNSETS) == 55 and len(set(SHAPENET_SYNSETS.values())) == 55
+    assert all(len(s) == 8 and s.isdigit() for s in SHAPENET_SYNSETS)
+    assert category_title("03001627") == "03001627 chair"
+    assert category_title("chair") == "chair" and category_title("12345678") == "12345678"
+
+
 def test_protocols_are_named_objects():
     assert get_protocol("shapenet34") is get_protocol("shapenet55")
     assert get_protocol("pcn").headline == "cd_l1"
@@ -179,7 +192,7 @@ def test_fidelity_and_mmd_equal_every_pair():
 
 
 @needs_runtime
-def test_pcn_prepare_predict_evaluate(pcn_tree, tmp_path):
+def test_pcn_prepare_predict_evaluate(pcn_tree, tmp_path, monkeypatch):
     data, pred = tmp_path / "data", tmp_path / "pred"
     assert main(["prepare", str(pcn_tree), "--out", str(data)]) == 0
     test = load_split(data, "test")
@@ -204,16 +217,48 @@ def test_pcn_prepare_predict_evaluate(pcn_tree, tmp_path):
     means = [report["categories"][c]["cd_l1"] for c in ("airplane", "chair")]
     assert report["mean"]["cd_l1"] == pytest.approx(np.mean(means))
 
+    # the gallery: the given scan, the completion file, the complete cloud; spread over categories
+    drawn, gallery = capture_panels(monkeypatch), tmp_path / "g.png"
+    args = ["evaluate", str(pred), "--data", str(data), "--gallery", str(gallery)]
+    assert main([*args, "--gallery-count", "3"]) == 0
+    assert gallery.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (rows,) = drawn
+    assert [label for label, _ in rows] == [
+        f"airplane/{test.name[0]}",
+        f"chair/{test.name[3]}",
+        f"airplane/{test.name[1]}",
+    ]
+    for (label, panels), i in zip(rows, (0, 3, 1), strict=True):
+        assert [title for title, _ in panels] == ["input", "completion", "ground truth"]
+        np.testing.assert_array_equal(panels[0][1][0][0], partials[i])
+        np.testing.assert_array_equal(panels[1][1][0][0], np.load(pred / f"{label}.npy"))
+        np.testing.assert_array_equal(panels[2][1][0][0], test.points[i])
+
 
 @needs_runtime
-def test_shapenet55_prepare_predict_evaluate(shapenet_tree, tmp_path, capsys):
+def test_shapenet55_prepare_predict_evaluate(shapenet_tree, tmp_path, capsys, monkeypatch):
     data, pred = tmp_path / "data", tmp_path / "pred"
     assert main(["prepare", str(shapenet_tree), "--out", str(data)]) == 0
     test = load_split(data, "test")
     assert test.points.shape == (4, 8192, 3)
     assert np.linalg.norm(test.points, axis=2).max() == pytest.approx(1.0, abs=1e-5)  # pc_norm
     args = ["--data", str(data), "--out", str(pred), "--protocol", "shapenet55"]
-    assert main(["predict", *args, "--missing-ratio", "0.75"]) == 0
+    drawn, gallery = capture_panels(monkeypatch), tmp_path / "g.png"
+    assert main(["predict", *args, "--missing-ratio", "0.75", "--gallery", str(gallery)]) == 0
+    assert gallery.read_bytes()[:4] == b"\x89PNG"
+    # one view per shape (shape j: view j % 8), PoinTr's crop of it, named with the synset
+    (rows,) = drawn
+    shapes = [f"{c}/{n}" for c, n in zip(test.category, test.name, strict=True)]
+    want = [shapes[0] + "_view0", shapes[2] + "_view2", shapes[1] + "_view1", shapes[3] + "_view3"]
+    assert [label for label, _ in rows] == [
+        key.replace("02691156", "02691156 airplane").replace("04379243", "04379243 table")
+        for key in want
+    ]
+    for (_, panels), i in zip(rows, (0, 2, 1, 3), strict=True):
+        view = i  # shape i, in the split's order, shows view i % 8
+        crop = shapenet_crop(test.points[i], 0.75, view)
+        np.testing.assert_array_equal(panels[0][1][0][0], crop)
+        np.testing.assert_array_equal(panels[2][1][0][0], test.points[i])
     files = sorted((pred / "02691156").glob("*.npy"))
     assert len(files) == 16 and files[0].name.endswith("_view0.npy")
     first = np.load(files[0])
@@ -223,6 +268,7 @@ def test_shapenet55_prepare_predict_evaluate(shapenet_tree, tmp_path, capsys):
     assert main(["evaluate", str(pred), "--data", str(data), "--json", str(js)]) == 0
     out = capsys.readouterr().out
     assert "protocol shapenet55, 75% missing, 32 of 32 completions scored" in out
+    assert "02691156 airplane" in out and "04379243 table" in out  # synsets named
     report = json.loads(js.read_text())
     want = pointr_reference(first, test.points[0])
     got = evaluate_benchmark(pred, data, "shapenet55", missing_ratio=0.75).per_sample

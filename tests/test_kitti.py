@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from brute import naive_fps, nearest_distances, needs_runtime, write_pcd
+from brute import capture_panels, naive_fps, nearest_distances, needs_runtime, write_pcd
 
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
@@ -161,7 +161,7 @@ def test_object_pose_refuses_boxes_without_length():
 
 
 @needs_runtime
-def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys):
+def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys, monkeypatch):
     root, truth = kitti_tree
     data, pred = tmp_path / "data", tmp_path / "pred"
     assert main(["prepare", str(root), "--out", str(data)]) == 0  # auto-detected
@@ -228,6 +228,20 @@ def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys
     assert report["mean"]["fidelity"] == pytest.approx(np.mean(fids) * 1000, rel=1e-4, abs=1e-9)
     # the completion holds its input: PF-Net's Fidelity is 0, as PoinTr's is (its table: 0.000)
     assert report["mean"]["fidelity"] == pytest.approx(0.0, abs=1e-6)
+
+    # the gallery: the car's input, its completion, the reference car nearest to it
+    drawn, gallery = capture_panels(monkeypatch), tmp_path / "g.png"
+    assert main([*args, "--gallery", str(gallery), "--gallery-count", "2"]) == 0
+    (picked,) = drawn
+    assert len(picked) == 2 and gallery.read_bytes()[:4] == b"\x89PNG"
+    for label, panels in picked:
+        model = label.split("/")[1]
+        assert [title for title, _ in panels] == ["input", "completion", "nearest reference"]
+        np.testing.assert_allclose(panels[0][1][0][0], inputs[model], atol=1e-6)
+        np.testing.assert_array_equal(panels[1][1][0][0], np.load(pred / "car" / f"{model}.npy"))
+        split, name = rows[model]["nearest_reference"].split("/")
+        refs = load_split(references, split)
+        np.testing.assert_array_equal(panels[2][1][0][0], refs.points[list(refs.name).index(name)])
 
     # a completion without its input: Fidelity measures the input's distance to it
     np.save(pred / "car" / f"{CARS[0][0]}.npy", np.load(pred / "car" / f"{CARS[0][0]}.npy")[-512:])

@@ -89,3 +89,100 @@ def render_prediction_gallery(
         keys=keys,
         title=title,
     )
+
+
+def pick_benchmark_gallery(keys: list[str], count: int, views: int) -> list[str]:
+    """Up to ``count`` of the prediction keys ``<category>/<stem>`` spread over the
+    categories, one view per shape (ShapeNet-55's ``<name>_view<v>``: shape j shows view
+    ``j % views`` when it was scored, else its first scored view)."""
+    if views > 1:
+        by_shape: dict[str, dict[int, str]] = {}
+        for key in keys:
+            shape, _, view = key.rpartition("_view")
+            by_shape.setdefault(shape, {})[int(view)] = key
+        keys = []
+        for j, found in enumerate(by_shape.values()):
+            keys.append(found.get(j % views) or found[min(found)])
+    chosen = pick_gallery([key.split("/", 1)[0] for key in keys], count)
+    return [keys[i] for i in chosen]
+
+
+def render_benchmark_gallery(
+    out: Path,
+    pred_dir: Path,
+    data_dir: Path,
+    protocol: str,
+    *,
+    keys: list[str],
+    split: str,
+    missing_ratio: float | None,
+    nearest: dict[str, str] | None = None,
+    references: Path | None = None,
+    reference_category: str = "car",
+) -> Path:
+    """Render the completions ``keys`` (``<category>/<stem>``) of a benchmark protocol
+    (``pcn``, ``shapenet55``, ``kitti``), one row each: the protocol's input (PCN's scan,
+    PoinTr's 2,048-point crop, the KITTI car in its object frame), the whole completion,
+    and the ground truth (the complete cloud; for KITTI the reference car nearest the
+    completion, ``nearest`` (key -> ``<split>/<name>`` of ``references``), when given).
+
+    Raises:
+        DataError: A prediction is missing or unreadable.
+    """
+    from pfnet.data import load_split
+    from pfnet.evaluation import find_prediction_files, load_references
+    from pfnet.io import read_point_cloud
+    from pfnet.protocols import category_title, get_protocol, shapenet_crop
+    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
+
+    chosen = get_protocol(protocol)
+    clouds = load_split(data_dir, split)
+    index = {
+        f"{c}/{n}": i for i, (c, n) in enumerate(zip(clouds.category, clouds.name, strict=True))
+    }
+    partials = boxes = None
+    if chosen.input == "given":
+        from pfnet.data.benchmarks import load_partials
+
+        partials = load_partials(data_dir, split, len(clouds))
+    if chosen.name == "kitti":
+        from pfnet.data.kitti import load_boxes
+
+        boxes = load_boxes(data_dir, split, len(clouds))
+    cars: dict[str, np.ndarray] = {}
+    if nearest and references is not None:
+        refs, labels = load_references(references, reference_category)
+        wanted = {nearest[k] for k in keys if k in nearest}
+        cars = {label: refs[i] for i, label in enumerate(labels) if label in wanted}
+    files = find_prediction_files(pred_dir)
+    rows = []
+    for key in keys:
+        if key not in files:
+            raise DataError(f"{pred_dir} has no prediction for {key}")
+        shape, view = key, 0
+        if chosen.views > 1:
+            shape, _, v = key.rpartition("_view")
+            view = int(v)
+        i = index[shape]
+        if chosen.name == "kitti":
+            from pfnet.data.kitti import kitti_input
+
+            given = kitti_input(partials[i], boxes[i], key)
+        elif partials is not None:
+            given = partials[i]
+        else:
+            given = shapenet_crop(np.asarray(clouds.points[i]), missing_ratio, view)
+        completion = read_point_cloud(files[key])
+        panels = [
+            ("input", [(given, PARTIAL_COLOR)]),
+            ("completion", [(completion, PREDICTION_COLOR)]),
+        ]
+        if chosen.name != "kitti":
+            panels.append(("ground truth", [(np.asarray(clouds.points[i]), GROUND_TRUTH_COLOR)]))
+        elif cars:
+            panels.append(("nearest reference", [(cars[nearest[key]], GROUND_TRUTH_COLOR)]))
+        category, _, stem = key.partition("/")
+        rows.append((f"{category_title(category)}/{stem}", panels))
+    shown = "" if missing_ratio is None else f", {missing_ratio:.0%} missing"
+    title = f"{Path(pred_dir).name}: {chosen.name}, {split}{shown}"
+    return render_panels(out, rows, views=1, title=title)

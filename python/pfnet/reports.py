@@ -37,21 +37,24 @@ def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
 
 def format_benchmark_table(report: dict) -> str:
     """A benchmark protocol's table (:func:`pfnet.evaluation.evaluate_benchmark`): per category
-    CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 and the F-score, then the unweighted mean."""
+    CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 and the F-score, then the unweighted mean; ShapeNet
+    synset ids are shown with their names."""
+    from pfnet.protocols import category_title
+
     header = (
-        f"{'category':<16} {'n':>6} {'CD-L1':>9} {'CD-L2':>9} {'Pred→GT':>9} "
+        f"{'category':<21} {'n':>6} {'CD-L1':>9} {'CD-L2':>9} {'Pred→GT':>9} "
         f"{'GT→Pred':>9} {'F@0.01':>7}"
     )
     lines = [header, "-" * len(header)]
 
     def row(name: str, n: object, m: dict) -> str:
         return (
-            f"{name:<16} {n!s:>6} {m['cd_l1']:>9.3f} {m['cd_l2']:>9.3f} "
+            f"{name:<21} {n!s:>6} {m['cd_l1']:>9.3f} {m['cd_l2']:>9.3f} "
             f"{m['pred_to_gt']:>9.3f} {m['gt_to_pred']:>9.3f} {m['f_score']:>7.3f}"
         )
 
     for cat, m in sorted(report["categories"].items()):
-        lines.append(row(cat, m["n"], m))
+        lines.append(row(category_title(cat), m["n"], m))
     lines.append("-" * len(header))
     total = sum(m["n"] for m in report["categories"].values())
     lines.append(row("mean", total, report["mean"]))

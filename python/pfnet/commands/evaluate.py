@@ -194,7 +194,6 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     for flag, value in (
         ("--region", args.region),
         ("--pred-is-complete", args.pred_is_complete or None),
-        ("--gallery", args.gallery),
     ):
         if value is not None:
             raise ConfigError(f"{flag} applies to the pfnet protocol, not to {protocol}")
@@ -234,7 +233,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
                 )
             ratio = made_ratio
     inputs = [args.data] if args.references is None else [args.data, args.references]
-    for flag in ("json", "csv"):
+    for flag in ("json", "csv", "gallery"):
         if getattr(args, flag) is not None:
             check_report_path(getattr(args, flag), args.pred, inputs, flag=f"--{flag}")
     if protocol == "kitti":
@@ -256,6 +255,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     print(f"{chosen.title}; CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 (PoinTr's), F-score at 0.01")
     print(format_benchmark_table(report))
     _write_reports(args, evaluation, write_csv)
+    _benchmark_gallery(args, evaluation, protocol, report["missing_ratio"])
     return _exit_code(args, evaluation)
 
 
@@ -283,7 +283,34 @@ def _run_kitti(args: argparse.Namespace) -> int:
     )
     print(format_kitti_table(report))
     _write_reports(args, evaluation, write_kitti_csv)
+    _benchmark_gallery(args, evaluation, "kitti", None)
     return _exit_code(args, evaluation)
+
+
+def _benchmark_gallery(
+    args: argparse.Namespace, evaluation: Evaluation, protocol: str, ratio: float | None
+) -> None:
+    """``--gallery`` of a benchmark protocol: scored completions, spread over the categories."""
+    if args.gallery is None:
+        return
+    from pfnet.gallery import pick_benchmark_gallery, render_benchmark_gallery
+    from pfnet.protocols import get_protocol
+
+    keys = [f"{c}/{n}" for c, n in zip(evaluation.categories, evaluation.names, strict=True)]
+    nearest = evaluation.labels.get("nearest_reference") if evaluation.labels else None
+    path = render_benchmark_gallery(
+        args.gallery,
+        args.pred,
+        args.data,
+        protocol,
+        keys=pick_benchmark_gallery(keys, args.gallery_count, get_protocol(protocol).views),
+        split=args.split,
+        missing_ratio=ratio,
+        nearest=None if nearest is None else dict(zip(keys, nearest, strict=True)),
+        references=args.references,
+        reference_category=args.reference_category,
+    )
+    print(f"wrote {path}")
 
 
 def _scoring_ratio(args: argparse.Namespace) -> float:

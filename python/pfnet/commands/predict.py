@@ -80,22 +80,9 @@ def run(args: argparse.Namespace) -> int:
     # message, which says why: outputs apart from the inputs).
     if (args.out / "manifest.json").exists() and args.out.resolve() != args.data.resolve():
         raise ConfigError(f"--out {args.out} is a prepared data set; name another folder")
+    _check_gallery(args)
     if args.protocol != "pfnet":
         return _run_benchmark(args)
-    if args.gallery is not None:  # before predicting: never over the data or the checkpoint
-        from pfnet.data.format import split_categories
-        from pfnet.io import check_report_path
-        from pfnet.shipped import resolve_checkpoint
-
-        if not 1 <= args.gallery_count <= MAX_ROWS:  # 1,000 rows once failed after the work
-            raise ConfigError(
-                f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}"
-            )
-        if args.gallery.suffix.lower() not in (".png", ".html"):
-            raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
-        inputs = [args.data, resolve_checkpoint(args.checkpoint)]
-        categories = split_categories(args.data, args.split)  # the folders to come
-        check_report_path(args.gallery, args.out, inputs, flag="--gallery", categories=categories)
     info = predict_split(
         args.checkpoint,
         args.data,
@@ -131,8 +118,6 @@ def run(args: argparse.Namespace) -> int:
 def _run_benchmark(args: argparse.Namespace) -> int:
     """``pfnet predict --protocol pcn|shapenet55|kitti``: whole completions of the benchmark's
     inputs; exit 2 if some shapes were skipped (the rest are written)."""
-    if args.gallery is not None:
-        raise ConfigError(f"--gallery applies to the pfnet protocol, not to {args.protocol}")
     _check_benchmark_ratio(get_protocol(args.protocol), args.missing_ratio)
     info = predict_benchmark(
         args.checkpoint,
@@ -155,6 +140,21 @@ def _run_benchmark(args: argparse.Namespace) -> int:
     )
     name = info["protocol"]["name"]
     more = " --references CARS" if name == "kitti" else ""
+    if args.gallery is not None:
+        from pfnet.evaluation import find_prediction_files
+        from pfnet.gallery import pick_benchmark_gallery, render_benchmark_gallery
+
+        keys = sorted(find_prediction_files(args.out, quiet=True))
+        path = render_benchmark_gallery(
+            args.gallery,
+            args.out,
+            args.data,
+            name,
+            keys=pick_benchmark_gallery(keys, args.gallery_count, get_protocol(name).views),
+            split=args.split,
+            missing_ratio=ratio,
+        )
+        print(f"wrote {path}")
     print(f"score it: pfnet evaluate {args.out} --data {args.data} --protocol {name}{more}")
     n_skipped = info.get("n_skipped", 0)
     if n_skipped:
@@ -165,6 +165,23 @@ def _run_benchmark(args: argparse.Namespace) -> int:
         print(f"pfnet predict: {n_skipped} shape(s) could not be completed", file=sys.stderr)
         return 2
     return 0
+
+
+def _check_gallery(args: argparse.Namespace) -> None:
+    """Check ``--gallery`` before predicting: never over the data or the checkpoint."""
+    if args.gallery is None:
+        return
+    from pfnet.data.format import split_categories
+    from pfnet.io import check_report_path
+    from pfnet.shipped import resolve_checkpoint
+
+    if not 1 <= args.gallery_count <= MAX_ROWS:  # 1,000 rows once failed after the work
+        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
+    if args.gallery.suffix.lower() not in (".png", ".html"):
+        raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
+    inputs = [args.data, resolve_checkpoint(args.checkpoint)]
+    categories = split_categories(args.data, args.split)  # the folders to come
+    check_report_path(args.gallery, args.out, inputs, flag="--gallery", categories=categories)
 
 
 def _check_benchmark_ratio(chosen: Protocol, ratio: float | None) -> None:
