@@ -289,6 +289,8 @@ def test_normalize() -> None:
 def test_names_are_safe_and_unique() -> None:
     assert safe_name("Chairs/My Chair (2).obj") == "chairs_my_chair_2_.obj"
     assert safe_name("..hidden") == "hidden" and safe_name("%%%") == "shape"
+    # predict's record stands beside the category folders: no category takes its name
+    assert safe_name("Predictions.JSON") == "predictions_json"
     names = unique_names({"b": "A b", "a": "a_b", "c": "a b"})
     assert names == {"a": "a_b", "b": "a_b-2", "c": "a_b-3"}
 

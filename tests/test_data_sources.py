@@ -101,6 +101,18 @@ def test_mesh_folder_end_to_end(tmp_path: Path, mesh_tree: Path) -> None:
         np.testing.assert_allclose(np.linalg.norm(points, axis=2).max(axis=1), 1.0, atol=1e-6)
 
 
+def test_a_category_folder_named_like_the_prediction_record(tmp_path: Path) -> None:
+    """A category folder called ``predictions.json`` (audit 11, N6) is prepared as
+    ``predictions_json``, so predict can write its record beside the category folders."""
+    root = tmp_path / "meshes"
+    for category in ("predictions.json", "chair"):
+        for k in range(2):
+            (root / category).mkdir(parents=True, exist_ok=True)
+            trimesh.creation.box(extents=(1, 1 + k, 2)).export(root / category / f"m{k}.obj")
+    _prepare(root, tmp_path / "out", test_fraction=0.5, val_fraction=0.0)
+    assert set(_all_names(tmp_path / "out").values()) == {"chair", "predictions_json"}
+
+
 def test_mesh_folder_point_clouds_are_resampled(tmp_path: Path, mesh_tree: Path) -> None:
     _prepare(mesh_tree, tmp_path / "out", categories=["lamp"], test_fraction=0.0, val_fraction=0.0)
     clouds = load_split(tmp_path / "out", "train")

@@ -81,6 +81,14 @@ def test_demo_argument_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "has no shapes in its test split; the demo trains on one and completes" in err
     assert not (Path(out) / "run").exists()
+    # Audit 11 (N3): the demo's folder is its own, never a data set, predictions or a run
+    for marker, kind in (("manifest.json", "a prepared data set"), ("last.pt", "a training run")):
+        other = tmp_path / marker.replace(".", "-")
+        other.mkdir()
+        (other / marker).write_text("{}")
+        assert main(["demo", "--out", str(other), "--device", "cpu"]) == 1
+        assert f"--out {other} is {kind}; name a folder for the demo" in capsys.readouterr().err
+        assert [p.name for p in other.iterdir()] == [marker]
 
 
 def test_the_budget_is_filled_with_epochs_timed_after_start_up():

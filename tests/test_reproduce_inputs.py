@@ -187,3 +187,22 @@ def test_publish_refuses_run_files_that_are_links(tmp_path: Path) -> None:
     with pytest.raises(DataError, match="goes through a link"):
         publish(out, tmp_path / "pub")
     assert not (tmp_path / "pub").exists()
+
+
+def test_publish_refuses_other_pfnet_folders_and_its_own_runs(tmp_path: Path) -> None:
+    """Audit 11 (N3): --publish into a data set or into the study's own runs/ folder."""
+    from pfnet.errors import DataError
+    from pfnet.study import publish
+
+    out = tmp_path / "results"
+    shutil.copytree(RESULTS, out)
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "manifest.json").write_text("{}")
+    with pytest.raises(DataError, match=f"cannot publish into {data}: it is a prepared data set"):
+        publish(out, data)
+    assert [p.name for p in data.iterdir()] == ["manifest.json"]
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    with pytest.raises(DataError, match="inside the results folder"):
+        publish(out, out / "runs")
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before

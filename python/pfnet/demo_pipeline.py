@@ -128,7 +128,7 @@ def run_demo(
 
     Raises:
         ConfigError: ``minutes`` or ``epochs`` out of range, a bad device or source, or an
-            output folder that is a link.
+            output folder that is a link, a data set, a prediction folder or a training run.
     """
     if not (math.isfinite(minutes) and 0 < minutes <= MAX_MINUTES):
         raise ConfigError(f"the time budget must be positive and at most a week, got {minutes}")
@@ -138,6 +138,7 @@ def run_demo(
     from pfnet.devices import inference_device
     from pfnet.evaluation import SCALE, evaluate_predictions, render_evaluation_gallery
     from pfnet.inference import predict_split
+    from pfnet.io import other_kind
     from pfnet.reports import format_table, write_json
     from pfnet.shipped import describe
     from pfnet.training import train
@@ -149,6 +150,9 @@ def run_demo(
     for folder in (data_dir, pred_dir, out / "predictions-shipped", out / "run"):
         if folder.is_symlink():  # a planted link would take the demo's outputs elsewhere
             raise ConfigError(f"{folder} is a link; the demo writes only into real folders")
+    kind = other_kind(out)
+    if kind is not None:  # the demo's folder holds data/, run/, predictions/...: not these
+        raise ConfigError(f"--out {out} is {kind}; name a folder for the demo")
     out.mkdir(parents=True, exist_ok=True)
     run_dir = fresh_folder(out / "run")
     started = time.monotonic()

@@ -422,8 +422,6 @@ def predict_split(
 
     out = Path(out_dir)
     categories = sorted(set(map(str, clouds.category)))
-    if "predictions.json" in categories:  # its folder would stand where the record goes
-        raise DataError(f"{data_dir}: a category is named predictions.json")
     open_prediction_folder(
         out,
         categories,

@@ -85,6 +85,19 @@ def refuse_overlap(
         )
 
 
+def other_kind(folder: str | os.PathLike[str]) -> str | None:
+    """What pfnet output ``folder`` already is (a data set, a prediction folder, a training
+    run), or None: a command that writes a folder of its own kind refuses these."""
+    folder = Path(folder)
+    if (folder / "manifest.json").is_file():
+        return "a prepared data set"
+    if (folder / "predictions.json").is_file():
+        return "a prediction folder"
+    if (folder / "last.pt").is_file() or (folder / "best.pt").is_file():
+        return "a training run"
+    return None
+
+
 def refuse_input_overwrite(
     outputs: Iterable[str | os.PathLike[str]],
     inputs: Iterable[str | os.PathLike[str]],

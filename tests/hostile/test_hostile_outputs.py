@@ -121,14 +121,16 @@ def test_a_data_set_with_hostile_or_duplicate_names_cannot_be_loaded(
         np.savez(data / "test.npz", points=points, category=np.array(["chair"] * n), name=names)
         with pytest.raises(DataError, match=message):
             load_split(data, "test")
-    # a category the manifest does not list (e.g. one named like predict's record file)
+    # a category the manifest does not list; one named like predict's record file
     names = ["a", *others, "b"]
-    category = np.array(["chair"] * (n - 1) + ["predictions.json"])
-    np.savez(data / "test.npz", points=points, category=category, name=names)
-    with pytest.raises(
-        DataError, match=r"categories \['predictions.json'\] are not in the manifest"
+    for odd, message in (
+        ("zebra", r"categories \[.zebra.\] are not in the manifest"),
+        ("predictions.json", "category 'predictions.json' is the name of the record predict"),
     ):
-        load_split(data, "test")
+        category = np.array(["chair"] * (n - 1) + [odd])
+        np.savez(data / "test.npz", points=points, category=category, name=names)
+        with pytest.raises(DataError, match=message):
+            load_split(data, "test")
 
 
 def test_evaluate_refuses_hidden_names_it_would_never_find(

@@ -325,7 +325,8 @@ def test_forged_string_widths_and_category_names_in_a_split(
     out = tmp_path / "pred"
     args = ["predict", "--checkpoint", str(checkpoint), "--data", str(data), "--out", str(out)]
     assert main([*args, "--device", "cpu"]) == 1
-    assert "a category is named predictions.json" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "category 'predictions.json' is the name of the record predict writes" in err
     assert not out.exists()
 
 

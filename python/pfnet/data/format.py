@@ -75,6 +75,11 @@ def skipped_entries(skipped: list[tuple[str, str]]) -> dict:
     return entries
 
 
+RECORD_NAME = "predictions.json"
+"""The record ``pfnet predict`` writes in a prediction folder beside the category folders: no
+category or shape may take its name."""
+
+
 def unsafe_component(text: str) -> str | None:
     """Why ``text`` cannot be one file or folder name under an output folder, or None.
 
@@ -94,6 +99,8 @@ def unsafe_component(text: str) -> str | None:
     bad = sorted({c for c in text if c in "/\\:" or ord(c) < 32 or ord(c) == 127})
     if bad:
         return f"contains {', '.join(repr(c) for c in bad)}: not allowed in a file name"
+    if text == RECORD_NAME:  # pfnet prepare never makes one (safe_name renames it)
+        return "is the name of the record predict writes beside the category folders"
     if text.startswith("."):  # pfnet prepare never makes one (safe_name strips the dot)
         return (
             "begins with '.': a hidden file, which evaluate skips like the temporary files "

@@ -408,10 +408,18 @@ def publish(out: Path, dest: Path) -> None:
         DataError: A run name that is not a plain name, or a linked folder in ``dest``.
     """
     from pfnet.data.format import unsafe_component
-    from pfnet.io import atomic_path
+    from pfnet.io import atomic_path, other_kind
 
     if dest.resolve() == out.resolve():
         return
+    kind = other_kind(dest)
+    if kind is not None:
+        raise DataError(f"cannot publish into {dest}: it is {kind}; name another folder")
+    if dest.resolve().is_relative_to(out.resolve()):
+        raise DataError(
+            f"cannot publish into {dest}: it is inside the results folder {out}; name a "
+            "folder outside it"
+        )
     try:
         results = json.loads((out / "results.json").read_text())
         names = [run["name"] for run in results["runs"]]

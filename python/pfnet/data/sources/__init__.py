@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pfnet.data.format import RECORD_NAME
 from pfnet.errors import ConfigError
 
 __all__ = [
@@ -110,9 +111,11 @@ def pick_source(source: Path | None, *, procedural: bool, default: Path, hint: s
 
 
 def safe_name(text: str) -> str:
-    """A lower-case, filesystem-safe version of ``text`` (``[a-z0-9._-]``, no leading dot)."""
+    """A lower-case, filesystem-safe version of ``text`` (``[a-z0-9._-]``, no leading dot,
+    never ``predictions.json``)."""
     name = _UNSAFE.sub("_", text.lower()).strip("._-")
-    return name[:_MAX_NAME].rstrip("._-") or "shape"
+    name = name[:_MAX_NAME].rstrip("._-") or "shape"
+    return "predictions_json" if name == RECORD_NAME else name  # predict's record keeps its name
 
 
 def unique_names(wanted: Mapping[str, str]) -> dict[str, str]:
