@@ -239,6 +239,7 @@ def test_pcn_prepare_predict_evaluate(pcn_tree, tmp_path, monkeypatch):
 def test_shapenet55_prepare_predict_evaluate(shapenet_tree, tmp_path, capsys, monkeypatch):
     data, pred = tmp_path / "data", tmp_path / "pred"
     assert main(["prepare", str(shapenet_tree), "--out", str(data)]) == 0
+    assert "04379243 table" in capsys.readouterr().out  # synsets named in the summary
     test = load_split(data, "test")
     assert test.points.shape == (4, 8192, 3)
     assert np.linalg.norm(test.points, axis=2).max() == pytest.approx(1.0, abs=1e-5)  # pc_norm

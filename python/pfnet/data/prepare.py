@@ -77,8 +77,11 @@ class PrepareReport:
 
     def summary(self) -> str:
         """A short human-readable table: shapes per category and split, skipped and dropped."""
+        from pfnet.protocols import category_title
+
         categories = sorted({c for counts in self.counts.values() for c in counts})
-        width = max([len(c) for c in categories] + [8])
+        titles = {c: category_title(c) for c in categories} | {"total": "total"}
+        width = max([len(t) for t in titles.values()] + [8])
         lines = [
             f"wrote {self.out}: {self.total} shapes from {self.format} in {self.seconds:.1f} s",
             f"{'category':<{width}} " + " ".join(f"{s:>6}" for s in (*SPLITS, "total")),
@@ -90,7 +93,8 @@ class PrepareReport:
                 else self.counts[s].get(category, 0)
                 for s in SPLITS
             ]
-            lines.append(f"{category:<{width}} " + " ".join(f"{n:>6}" for n in (*row, sum(row))))
+            cells = " ".join(f"{n:>6}" for n in (*row, sum(row)))
+            lines.append(f"{titles[category]:<{width}} {cells}")
         for reason, count in sorted(self.dropped.items()):
             if count:
                 hint = " (categories 'all' keeps them)" if reason == "unmatched" else ""
