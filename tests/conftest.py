@@ -28,3 +28,20 @@ def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
         progress=False,
     )
     return out
+
+
+@pytest.fixture
+def sigint_as_in_a_terminal():
+    """SIGINT handled as in a terminal for one test, whatever the test run inherited.
+
+    A test suite started in the background by a non-interactive shell inherits SIGINT
+    ignored, and ``pfnet train`` leaves an ignored SIGINT ignored (as CPython does); the
+    tests of Ctrl-C set it as a terminal has it (their subprocesses inherit that too).
+    """
+    import signal
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)

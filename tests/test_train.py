@@ -95,6 +95,7 @@ def _interrupt_at(monkeypatch: pytest.MonkeyPatch, call: int) -> None:
     monkeypatch.setattr(TrainingStep, "__call__", step)
 
 
+@pytest.mark.usefixtures("sigint_as_in_a_terminal")
 def test_ctrl_c_saves_and_resume_equals_an_uninterrupted_run(
     tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -103,7 +104,7 @@ def test_ctrl_c_saves_and_resume_equals_an_uninterrupted_run(
     train(config, tiny_dataset, whole, device="cpu", progress=False)
 
     split = tmp_path / "split"
-    before = signal.getsignal(signal.SIGINT)  # ignored when the tests run in the background
+    before = signal.getsignal(signal.SIGINT)
     with monkeypatch.context() as patch:
         _interrupt_at(patch, 7)  # epoch 2, batch 2
         summary = train(config, tiny_dataset, split, device="cpu", progress=False)

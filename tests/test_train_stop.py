@@ -22,6 +22,9 @@ from pfnet.training.loop import Trainer  # noqa: E402
 from pfnet.training.signals import StopRequest, spawn_shielded, start_helpers  # noqa: E402
 from pfnet.training.step import TrainingStep  # noqa: E402
 
+# Ctrl-C as in a terminal, even when the test suite runs in the background (SIGINT ignored)
+pytestmark = pytest.mark.usefixtures("sigint_as_in_a_terminal")
+
 # 24 training shapes in batches of 6: 4 steps an epoch.
 CONFIG = preset_config("small").replace(epochs=2, batch_size=6, width=0.125, save_every="1")
 
@@ -69,7 +72,7 @@ def test_ctrl_c_at_any_moment_saves_and_resumes_exactly(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     run = tmp_path / "run"
-    before = signal.getsignal(signal.SIGINT)  # ignored when the tests run in the background
+    before = signal.getsignal(signal.SIGINT)
     with monkeypatch.context() as patch:
         _sigint_on_call(patch, *MOMENTS[moment])
         summary = train(CONFIG, tiny_dataset, run, device="cpu", progress=False)
@@ -122,6 +125,22 @@ def test_passed_descriptors_reach_the_helper_and_stay_private_here() -> None:
         assert os.read(read, 5) == b"hello"
     finally:
         os.close(read), os.close(write)
+
+
+def test_an_ignored_sigint_stays_ignored() -> None:
+    """A run started in the background by a script (SIGINT ignored, as the shell leaves it)
+    is not stopped by a Ctrl-C meant for the foreground; SIGTERM still stops it."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with StopRequest().installed() as stop:
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            signal.raise_signal(signal.SIGINT)
+            assert not stop.requested
+            signal.raise_signal(signal.SIGTERM)
+            assert stop.requested
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_a_stop_signal_while_the_helpers_start_reaches_the_training_process(

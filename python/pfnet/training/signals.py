@@ -99,12 +99,17 @@ class StopRequest:
 
     @contextlib.contextmanager
     def installed(self) -> Iterator[StopRequest]:
-        """Install the handler for the duration of the block (main thread only)."""
+        """Install the handler for the duration of the block (main thread only).
+
+        A signal ignored when the block begins stays ignored, as a program started in the
+        background (``cmd &`` in a script, ``nohup``) is expected to: the shell set SIGINT to
+        be ignored so that a Ctrl-C meant for the foreground does not stop it."""
         if threading.current_thread() is not threading.main_thread():
             yield self
             return
         for signum in STOP_SIGNALS:
-            self._previous[signum] = signal.signal(signum, self._handle)
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                self._previous[signum] = signal.signal(signum, self._handle)
         try:
             yield self
         finally:
