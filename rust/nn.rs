@@ -358,37 +358,29 @@ mod tests {
                 .collect()
         };
         let mixed_heights = [1.0, 1e3, -1e5, 30.0, 1e5, -1e3];
-        vec![
+        let k1 = [
             (
                 "tilted plane, queries 1e3 above",
-                tilted_plane.clone(),
-                far_above_plane(&[1e3]),
+                "tilted line, queries 1e3 away",
+                &[1e3][..],
             ),
             (
                 "tilted plane, queries 1e5 above",
-                tilted_plane.clone(),
-                far_above_plane(&[1e5]),
+                "tilted line, queries 1e5 away",
+                &[1e5][..],
             ),
             (
                 "tilted plane, queries 1 to 1e5 above and below",
-                tilted_plane.clone(),
-                far_above_plane(&mixed_heights),
-            ),
-            (
-                "tilted line, queries 1e3 away",
-                tilted_line.clone(),
-                far_from_line(&[1e3]),
-            ),
-            (
-                "tilted line, queries 1e5 away",
-                tilted_line.clone(),
-                far_from_line(&[1e5]),
-            ),
-            (
                 "tilted line, queries 1 to 1e5 away",
-                tilted_line,
-                far_from_line(&mixed_heights),
+                &mixed_heights[..],
             ),
+        ];
+        let mut layouts = Vec::new();
+        for (plane_name, line_name, heights) in k1 {
+            layouts.push((plane_name, tilted_plane.clone(), far_above_plane(heights)));
+            layouts.push((line_name, tilted_line.clone(), far_from_line(heights)));
+        }
+        layouts.extend([
             (
                 "oblique line, noisy queries",
                 x_eq_y_eq_z.clone(),
@@ -445,7 +437,8 @@ mod tests {
                 cloud(n, 8, true),
                 shifted(&cloud(n, 9, true), 0.5),
             ),
-        ]
+        ]);
+        layouts
     }
 
     #[test]
