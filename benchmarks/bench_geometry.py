@@ -119,7 +119,8 @@ def test_chamfer_duplicates(benchmark, kind, tool):
 
 
 def degenerate_pair(layout: str, n: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
-    """(query, reference) on which kiddo's KD-tree, used before issue 14, went quadratic."""
+    """(query, reference) on which a KD-tree pfnet used went quadratic: kiddo's before issue 14,
+    its own before audit 9 (oblique layouts) and before audit K1 (far from tilted ones)."""
     rng = np.random.default_rng(14)
     if layout == "collinear":
         line = np.zeros((n, 3), np.float32)
@@ -145,9 +146,35 @@ def degenerate_pair(layout: str, n: int = 100_000) -> tuple[np.ndarray, np.ndarr
         cluster = (rng.random((n, 3)) * 1e-6).astype(np.float32)
         cluster[n // 2 :] += np.float32(1e6)
         return rng.random((n, 3)).astype(np.float32) * np.float32(1e6), cluster
+    # Audit K1: queries far from a tilted plane or line, where every point near a query's foot
+    # ties in float32 (100k points at H = 1e3: 21 s when pfnet ranked in float32 first). A tenth
+    # as many queries as points: scipy takes seconds.
+    if layout.startswith("tilted "):
+        shape, height = layout.split()[1].rstrip(","), layout.split()[-1]
+        return far_from_tilted(shape, n, n // 10, float(height), rng)
     subnormal = (rng.random((n, 3)) * 1e-40).astype(np.float32)
     subnormal[-1] = 1e17
     return subnormal, subnormal
+
+
+def far_from_tilted(
+    shape: str, n: int, queries: int, height: float, rng
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` points on a tilted unit patch of a plane or unit segment of a line, and ``queries``
+    queries ``height`` away from points of it (across the plane, or across the line)."""
+    if shape == "plane":
+        a, b = rng.random((2, n))
+        reference = np.c_[a, b, 0.3 * a + 0.7 * b]
+        fa, fb = rng.random((2, queries))
+        feet = np.c_[fa, fb, 0.3 * fa + 0.7 * fb]
+        away = np.array([0.3, 0.7, -1.0]) / np.sqrt(1.58)
+    else:
+        direction = np.array([1.0, 0.6, 0.3]) / np.sqrt(1.45)
+        reference, feet = rng.random((n, 1)) * direction, rng.random((queries, 1)) * direction
+        away = rng.normal(size=(queries, 3))
+        away -= (away @ direction)[:, None] * direction
+        away /= np.linalg.norm(away, axis=1, keepdims=True)
+    return (feet + height * away).astype(np.float32), reference.astype(np.float32)
 
 
 def ckdtree_nearest(query, reference):
@@ -162,6 +189,10 @@ DEGENERATE = [
     "oblique line, noisy queries",
     "oblique plane, cube queries",
     "two far tiny clusters",
+    "tilted plane, queries at 1e3",
+    "tilted plane, queries at 1e5",
+    "tilted line, queries at 1e3",
+    "tilted line, queries at 1e5",
 ]
 
 

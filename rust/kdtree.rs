@@ -13,9 +13,8 @@
 //!
 //! This tree splits each node at the median of its widest extent, so its depth is ⌈log₂(n/16)⌉
 //! whatever the layout. Its cells are the cloud's bounding box cut by the splitting planes, and
-//! it prunes with the point of the cell closest to the query: its float32 distance is an exact
-//! lower bound on the float32 distance of every point of the cell (see
-//! [`Nearest::may_be_in_cell`]), and its float64 distance one on their float64 distance.
+//! it prunes with the point of the cell closest to the query: its float64 distance is an exact
+//! lower bound on the float64 distance of every point of the cell (see [`Nearest::may_hold`]).
 //!
 //! A cell can be much larger than its points: on a line or plane oblique to the axes, a leaf's
 //! cell stays open along the line or plane, and a small cluster far from the rest of the cloud
@@ -30,9 +29,20 @@
 //! of a patch of the plane is flat and the search visits a handful of leaves. On spread clouds
 //! almost no node has a hull and the search is the plain one.
 //!
-//! The answer is defined by the float32 distance callers see, `dx*dx + dy*dy + dz*dz` in that
-//! order: the point with the smallest one; among equal float32 distances the nearest in float64;
-//! then the lowest item. Pruning is exact for that order (see [`Nearest::may_improve`]).
+//! The answer is the point with the smallest float64 squared distance computed from the float32
+//! coordinates, `dx*dx + dy*dy + dz*dz` in that order; among equal ones the lowest item. Callers
+//! see that distance rounded to float32, which never decreases along that order. Pruning is exact
+//! for it: cells bound the float64 distance exactly, hulls lowered by a relative
+//! [`F64_RELATIVE_ERROR`] for rounding ([`Hull::lower`]), and a leaf's points are first compared
+//! in float32 against a cutoff that no point able to come first exceeds ([`Nearest::cutoff`]).
+//!
+//! The tree used to rank in float32 first (ties to the float64 nearest), which made a query far
+//! from a plane or line oblique to the axes cost O(n): a float32 squared distance carries a
+//! relative error of about 6·10⁻⁸, so at height H above a patch of size about 1 every point
+//! within about 2.5·10⁻⁴·H of the query's foot tied with the best, and the hulls, whose bound is
+//! not exact in float32, could not exclude any of them (audit K1: 100k points at H = 10³, 21 s).
+//! In float64, with the hulls' margin of 2⁻⁴⁸, the band is about 10⁻⁷·H wide: a few leaves at
+//! H = 10³, about a hundred along a line at 10⁵; it covers a unit patch again at about 10⁷.
 
 use std::ops::Range;
 
@@ -42,15 +52,15 @@ const LEAF_SIZE: usize = 16;
 /// Subtrees of at least this many points are built on two threads.
 const PARALLEL_MIN_BUILD: usize = 1 << 13;
 
-/// Bounds on float32 rounding, used to turn a float64 distance into a lower bound on the float32
-/// one. The float32 distance takes five rounded operations, each with relative error at most
-/// 2⁻²⁴ (5·2⁻²⁴ < 2⁻²⁰ leaves room for the float64 errors, about 2⁻⁵⁰), and each of its three
-/// squares may underflow by at most 2⁻¹⁵⁰ (3·2⁻¹⁵⁰ < 2⁻¹⁴⁷).
-const F32_RELATIVE_ERROR: f64 = 1.0 / (1u64 << 20) as f64;
-const F32_UNDERFLOW: f64 = 1.0 / (1u128 << 127) as f64 / (1u64 << 20) as f64;
+/// How much [`Hull::lower`] is lowered, relatively, so that it stays below the float64 distance
+/// of every point of its node: the rounding of both (twelve operations of 2⁻⁵³) rounded up.
+const F64_RELATIVE_ERROR: f64 = 1.0 / (1u64 << 48) as f64;
 
-/// The relative error of a float64 squared distance or box distance (a few 2⁻⁵³), rounded up.
-const F64_RELATIVE_ERROR: f64 = 1.0 / (1u64 << 45) as f64;
+/// The margins of the leaf scan's float32 prefilter ([`Nearest::cutoff`]): relative, above the
+/// float32 rounding of a squared distance (five operations of 2⁻²⁴) and the float64 one, and
+/// absolute, above the underflow of its three squares (2⁻¹⁵⁰ each).
+const PREFILTER_RELATIVE: f64 = 1.0 / (1u64 << 20) as f64;
+const PREFILTER_UNDERFLOW: f64 = 1.0 / (1u128 << 126) as f64 / (1u64 << 20) as f64;
 
 /// A point of the tree and the item it answers with.
 #[derive(Clone, Copy)]
@@ -124,7 +134,8 @@ const HULL_ERROR: f64 = 1.0 / (1u64 << 49) as f64;
 /// float64 products). A query `q` then lies at least `dist(axis · (q − centre), [lo, hi])` from
 /// the node along each axis, less the rounding of that product, and the squared distance from `q`
 /// to any point is at least the sum of these squares times `shrink`, which bounds
-/// 1 / ‖axes‖₂² (so that axes that are not exactly orthonormal still give a lower bound).
+/// 1 / ‖axes‖₂² (so that axes that are not exactly orthonormal still give a lower bound) and
+/// takes off [`F64_RELATIVE_ERROR`] for rounding (see [`Hull::lower`]).
 #[derive(Clone)]
 struct Hull {
     centre: [f64; 3],
@@ -132,8 +143,7 @@ struct Hull {
     lo: [f64; 3],
     hi: [f64; 3],
     shrink: f64,
-    /// With the coordinate axes, the box itself, for the exact bound of
-    /// [`Nearest::may_be_in_cell`].
+    /// With the coordinate axes, the box itself, for the exact bound of [`Nearest::may_hold`].
     tight: Option<Bounds>,
 }
 
@@ -151,6 +161,9 @@ impl Hull {
                 hi[i] = hi[i].max(t + err);
             }
         }
+        // The centre is the points' mean, so `lo ≤ 0 ≤ hi` up to its rounding; exactly so (see
+        // `Hull::lower`).
+        let (lo, hi) = (lo.map(|l| l.min(0.0)), hi.map(|h| h.max(0.0)));
         // ‖U‖₂² ≤ ‖U Uᵀ‖∞, each Gram entry computed within a few 2⁻⁵³.
         let gram_row = |i: usize| (0..3).map(move |j| dot(&axes[i], &axes[j]).abs() + 1e-15);
         let norm = (0..3).map(|i| gram_row(i).sum::<f64>()).fold(0.0, f64::max);
@@ -159,8 +172,7 @@ impl Hull {
             axes,
             lo,
             hi,
-            // Less the relative rounding of the sum of squares in `lower` (a few 2⁻⁵³).
-            shrink: (1.0 - 1e-13) / norm,
+            shrink: (1.0 - F64_RELATIVE_ERROR) / norm,
             tight: (axes == IDENTITY).then(|| Bounds::of(entries)),
         }
     }
@@ -169,21 +181,23 @@ impl Hull {
     /// [`Hull::lower`]`(q64)`.
     #[inline]
     fn admits(&self, best: &Nearest, q: &[f32; 3], q64: &[f64; 3], lower: f64) -> bool {
-        if !best.may_improve(lower) {
-            return false;
-        }
-        match &self.tight {
-            // Only near a tie: converting subnormal coordinates to float64 costs.
-            Some(tight) if !best.surely_improves(lower) => {
-                let closest = tight.closest(q);
-                best.may_be_in_box(q, sq_dist_f64(q64, &closest), &closest)
-            }
-            _ => true,
-        }
+        best.may_hold(lower)
+            && self
+                .tight
+                .as_ref()
+                .is_none_or(|tight| best.may_hold(sq_dist_f64(q64, &tight.closest(q))))
     }
 
-    /// A lower bound on the float64 squared distance from `q` to the node's points, up to the
-    /// few 2⁻⁵³ of rounding [`Nearest::may_improve`] allows for.
+    /// A lower bound on the float64 squared distance ([`sq_dist_f64`]) from `q` to every point
+    /// of the node, rounding included.
+    ///
+    /// Along an axis the exact product lies within `err` / 4 of `t`, so the computed gap is at
+    /// most the exact gap less 3/4 of `err` plus the rounding of `lo − t` (or `t − hi`); that is
+    /// below 2⁻⁵³·|t| (`lo ≤ 0 ≤ hi`, so where positive it is at most |t|), itself below `err`
+    /// / 16; and the subtraction of `err` rounds by a relative 2⁻⁵³. So the computed bound is at
+    /// most the exact one times (1 + 2⁻⁵³)⁷ (the gaps, their squares, the sum, `shrink` and its
+    /// division), and a point's float64 distance at least its exact one times (1 − 2⁻⁵³)⁵:
+    /// `shrink`'s [`F64_RELATIVE_ERROR`] covers both.
     #[inline]
     fn lower(&self, q: &[f64; 3]) -> f64 {
         let w = [0, 1, 2].map(|d| q[d] - self.centre[d]);
@@ -338,13 +352,15 @@ impl Default for Leaf {
     }
 }
 
-/// The squared distance in float32, in the plain order every caller uses.
+/// The squared distance in float32, for the leaf scan's prefilter.
 #[inline]
 fn sq_dist_f32(q: &[f32; 3], r: &[f32; 3]) -> f32 {
     let (dx, dy, dz) = (q[0] - r[0], q[1] - r[1], q[2] - r[2]);
     dx * dx + dy * dy + dz * dz
 }
 
+/// The squared distance in float64 from float32 coordinates, `dx*dx + dy*dy + dz*dz` in that
+/// order: the distance that ranks the points.
 #[inline]
 fn sq_dist_f64(q: &[f64; 3], r: &[f32; 3]) -> f64 {
     let (dx, dy, dz) = (
@@ -357,73 +373,62 @@ fn sq_dist_f64(q: &[f64; 3], r: &[f32; 3]) -> f64 {
 
 /// The best answer so far of one query.
 struct Nearest {
-    sq_dist: f32,
-    sq_dist_f64: f64,
+    /// Its float64 squared distance.
+    sq_dist: f64,
     item: u32,
+    /// [`Nearest::cutoff`] of `sq_dist`.
+    cutoff: f32,
 }
 
 impl Nearest {
-    /// Whether a cell `lower` away from the query (float64 squared distance) may hold a point
-    /// that comes before the best so far.
+    const NONE: Nearest = Nearest {
+        sq_dist: f64::INFINITY,
+        item: u32::MAX,
+        cutoff: f32::INFINITY,
+    };
+
+    /// The largest float32 squared distance `dx*dx + dy*dy + dz*dz` of a point whose float64
+    /// one is at most `sq_dist`, so that a leaf scan can skip, in float32, the points that
+    /// cannot come first.
     ///
-    /// Every point of the cell is at least `lower` away up to float64 rounding, so its float32
-    /// distance is at least `lower_f32` below; it can come first only with a smaller float32
-    /// distance, or an equal one and a float64 distance no larger than the best's.
+    /// For the exact squared distance D of a point, the float32 distance (five operations, each
+    /// rounded by a relative 2⁻²⁴, a square also by an absolute 2⁻¹⁵⁰ when it underflows;
+    /// differences and sums that underflow are exact) is at most D·(1 + 2⁻²⁴)⁵ + 2⁻¹⁴⁸, and the
+    /// float64 distance (no underflow: squares of float32 differences are above 2⁻²⁹⁸) at least
+    /// D·(1 − 2⁻⁵³)⁵. A point at float64 distance at most `sq_dist` thus has a float32 distance
+    /// at most `sq_dist`·(1 + 5.1·2⁻²⁴) + 2⁻¹⁴⁸. The cutoff, `sq_dist`·(1 + 2⁻²⁰) + 2⁻¹⁴⁶
+    /// rounded to float64 and then to float32 (a relative 2⁻²⁴, or an absolute 2⁻¹⁵⁰ among
+    /// subnormals), stays above that. Coordinates are within ±1e18
+    /// ([`crate::error::MAX_COORDINATE`]), so no distance overflows; with no answer yet the
+    /// cutoff is infinite.
     #[inline]
-    fn may_improve(&self, lower: f64) -> bool {
-        let best = f64::from(self.sq_dist);
-        let lower_f32 = (lower * (1.0 - F32_RELATIVE_ERROR) - F32_UNDERFLOW).max(0.0);
-        lower_f32 < best
-            || (lower_f32 <= best && lower * (1.0 - F64_RELATIVE_ERROR) <= self.sq_dist_f64)
+    fn cutoff(sq_dist: f64) -> f32 {
+        (sq_dist * (1.0 + PREFILTER_RELATIVE) + PREFILTER_UNDERFLOW) as f32
     }
 
-    /// Whether a cell whose point closest to the query is `closest` may hold a point that comes
-    /// before the best so far.
+    /// Whether a node all of whose points are at least `lower` from the query (float64 squared
+    /// distance) may hold a point that comes before the best so far (an equal distance may come
+    /// first by its item).
     ///
-    /// This bound is exact in float32: the float32 distance `dx*dx + dy*dy + dz*dz` only grows
-    /// with each `|q − r|` (every rounding is monotonic and symmetric), so no point of the cell
-    /// has a smaller one than `closest`. With an equal one, a point comes first only if its
-    /// float64 distance, at least the cell's up to rounding, is no larger than the best's. An
-    /// exact bound matters when a query is far from a small node: all its points may then tie in
-    /// float32 and only float64 tells them apart.
+    /// For a box, the float64 distance of its point closest to the query is an exact `lower`:
+    /// the float64 distance of a point only grows with each |q − r| (every rounded operation is
+    /// monotonic and symmetric), so no point of the box has a smaller one. An exact bound
+    /// matters when a query is far from a small node and its points' distances differ only in
+    /// the last bits. For a hull, [`Hull::lower`].
     #[inline]
-    fn may_be_in_cell(&self, q: &[f32; 3], q64: &[f64; 3], closest: &[f32; 3]) -> bool {
-        let lower = sq_dist_f64(q64, closest);
-        self.may_improve(lower) && self.may_be_in_box(q, lower, closest)
+    fn may_hold(&self, lower: f64) -> bool {
+        lower <= self.sq_dist
     }
 
-    /// The exact part of [`Self::may_be_in_cell`], for a box `lower` away in float64 (up to
-    /// rounding) that passed [`Self::may_improve`]`(lower)`, with `closest` its point closest
-    /// to `q`.
+    /// Take the point `r` of `item` if it comes first.
     #[inline]
-    fn may_be_in_box(&self, q: &[f32; 3], lower: f64, closest: &[f32; 3]) -> bool {
-        // The float32 distance of `closest` is surely below the best's: no need to compute it
-        // (which costs on subnormal coordinates).
-        if self.surely_improves(lower) {
-            return true;
-        }
-        let d = sq_dist_f32(q, closest);
-        d < self.sq_dist
-            || (d == self.sq_dist && lower * (1.0 - F64_RELATIVE_ERROR) <= self.sq_dist_f64)
-    }
-
-    /// Whether every float32 distance at float64 distance `lower` (up to rounding) is below the
-    /// best's.
-    #[inline]
-    fn surely_improves(&self, lower: f64) -> bool {
-        lower * (1.0 + F32_RELATIVE_ERROR) + F32_UNDERFLOW < f64::from(self.sq_dist)
-    }
-
-    /// Take the point `r` of `item`, at float32 distance `d` no larger than the best's, if it
-    /// comes first.
-    #[inline]
-    fn offer(&mut self, d: f32, q: &[f64; 3], r: &[f32; 3], item: u32) {
-        let d64 = sq_dist_f64(q, r);
-        if d < self.sq_dist || (d64, item) < (self.sq_dist_f64, self.item) {
+    fn offer(&mut self, q: &[f64; 3], r: &[f32; 3], item: u32) {
+        let d = sq_dist_f64(q, r);
+        if (d, item) < (self.sq_dist, self.item) {
             *self = Nearest {
                 sq_dist: d,
-                sq_dist_f64: d64,
                 item,
+                cutoff: Self::cutoff(d),
             };
         }
     }
@@ -469,15 +474,12 @@ impl KdTree {
     /// module documentation.
     #[inline]
     pub fn nearest(&self, q: &[f32; 3]) -> (f32, u32) {
-        let mut best = Nearest {
-            sq_dist: f32::INFINITY,
-            sq_dist_f64: f64::INFINITY,
-            item: u32::MAX,
-        };
+        let mut best = Nearest::NONE;
         let q64 = q.map(f64::from);
         let closest = self.bounds.closest(q);
         self.search(0, self.splits.len(), 0, q, &q64, closest, false, &mut best);
-        (best.sq_dist, best.item)
+        // Below 1.2e37 (MAX_COORDINATE): no overflow.
+        (best.sq_dist as f32, best.item)
     }
 
     /// Search the subtree at internal node `node` (`span` internal nodes; none for a leaf) whose
@@ -520,7 +522,7 @@ impl KdTree {
         // child's has `value` along `axis`.
         let mut far_closest = closest;
         far_closest[axis] = value;
-        if best.may_be_in_cell(q, q64, &far_closest) {
+        if best.may_hold(sq_dist_f64(q64, &far_closest)) {
             self.search(far.0, half, far.1, q, q64, far_closest, false, best);
         }
     }
@@ -574,7 +576,7 @@ impl KdTree {
                     order.swap(0, 1);
                 }
                 for ((child, child_leaf), child_closest, hull, lower) in order {
-                    if best.may_be_in_cell(q, q64, &child_closest)
+                    if best.may_hold(sq_dist_f64(q64, &child_closest))
                         && hull.admits(best, q, q64, lower)
                     {
                         self.search(child, half, child_leaf, q, q64, child_closest, true, best);
@@ -584,7 +586,7 @@ impl KdTree {
             }
         }
         self.search(near.0, half, near.1, q, q64, closest, false, best);
-        if best.may_be_in_cell(q, q64, &far_closest) {
+        if best.may_hold(sq_dist_f64(q64, &far_closest)) {
             self.search(far.0, half, far.1, q, q64, far_closest, false, best);
         }
     }
@@ -605,6 +607,8 @@ impl KdTree {
         })
     }
 
+    /// Offer `best` the points of `leaf`: their float32 distances, computed together, skip
+    /// those that cannot come first ([`Nearest::cutoff`]); the others are ranked in float64.
     #[inline]
     fn scan(&self, leaf: &Leaf, q: &[f32; 3], q64: &[f64; 3], best: &mut Nearest) {
         let [xs, ys, zs] = &leaf.coords;
@@ -615,12 +619,12 @@ impl KdTree {
         // NaN (padding) compares false.
         let mut any = false;
         for &dk in &d {
-            any |= dk <= best.sq_dist;
+            any |= dk <= best.cutoff;
         }
         if any {
             for k in 0..LEAF_SIZE {
-                if d[k] <= best.sq_dist {
-                    best.offer(d[k], q64, &[xs[k], ys[k], zs[k]], leaf.items[k]);
+                if d[k] <= best.cutoff {
+                    best.offer(q64, &[xs[k], ys[k], zs[k]], leaf.items[k]);
                 }
             }
         }

@@ -54,13 +54,13 @@ const GRID_CELLS: usize = 1 << 20;
 /// How many cells around each completion point its distance field is exact.
 const SPLAT_CELLS: usize = 3;
 /// Lower bounds are multiplied by this before any comparison. The distances the exact sum adds
-/// are float32 `dx*dx + dy*dy + dz*dz` (relative error below 4e-7 against the true squared
-/// distance) summed in float64 (relative error below n·1.2e-16, n < 2^32: under 6e-7); the
-/// bounds are float64 from float32 coordinates with a 1e-6 relative margin on every distance.
-/// 1e-5 leaves a wide gap above all of it.
+/// are float64 `dx*dx + dy*dy + dz*dz` rounded to float32 (relative error below 7e-8 against the
+/// true squared distance) summed in float64 (relative error below n·1.2e-16, n < 2^32: under
+/// 6e-7); the bounds are float64 from float32 coordinates with a 1e-6 relative margin on every
+/// distance. 1e-5 leaves a wide gap above all of it.
 const BOUND_SHRINK: f64 = 1.0 - 1e-5;
-/// Subtracted from every lower bound: float32 squared distances below the smallest normal
-/// float32 (1.2e-38) lose their relative precision (absolute error under 1e-44 a point).
+/// Subtracted from every lower bound: squared distances rounded to float32 below its smallest
+/// normal (1.2e-38) lose their relative precision (absolute error under 1e-45 a point).
 const BOUND_SLACK: f64 = 1e-36;
 
 /// A fixed pseudo-random order of `0..n` (xorshift-driven Fisher–Yates), so that any prefix

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from brute import far_from_tilted, nearest_naive
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -25,16 +26,15 @@ def fps_naive(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:
     return np.array(chosen, dtype=np.int64)
 
 
-def nn_naive(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    q = np.asarray(query, dtype=np.float32)[:, None, :]
-    r = np.asarray(reference, dtype=np.float32)[None, :, :]
-    d = (q[..., 0] - r[..., 0]) ** 2 + (q[..., 1] - r[..., 1]) ** 2 + (q[..., 2] - r[..., 2]) ** 2
-    return d.min(axis=1)
+def assert_nearest_naive(query, reference, sq_dist, index):
+    want_sq_dist, want_index = nearest_naive(query, reference)
+    np.testing.assert_array_equal(sq_dist, want_sq_dist)
+    np.testing.assert_array_equal(index, want_index)
 
 
 def chamfer_naive(pred, gt):
-    return float(nn_naive(pred, gt).astype(np.float64).mean()), float(
-        nn_naive(gt, pred).astype(np.float64).mean()
+    return float(nearest_naive(pred, gt)[0].astype(np.float64).mean()), float(
+        nearest_naive(gt, pred)[0].astype(np.float64).mean()
     )
 
 
@@ -207,18 +207,33 @@ def test_nearest_neighbors_matches_brute_force(nq, nr):
     d, i = g.nearest_neighbors(q, r)
     assert d.shape == (nq,) and i.shape == (nq,) and d.dtype == np.float32 and i.dtype == np.int64
     if nq * nr <= 4_000_000:
-        np.testing.assert_array_equal(d, nn_naive(q, r))
-    diff = q - r[i]
-    np.testing.assert_array_equal(d, diff[:, 0] ** 2 + diff[:, 1] ** 2 + diff[:, 2] ** 2)
+        assert_nearest_naive(q, r, d, i)
+    # the distance is the float64 one of the point named, rounded to float32
+    diff = q.astype(np.float64) - r[i]
+    np.testing.assert_array_equal(
+        d, (diff[:, 0] ** 2 + diff[:, 1] ** 2 + diff[:, 2] ** 2).astype(np.float32)
+    )
 
 
 @pytest.mark.parametrize("name", list(degenerate_clouds()))
 def test_nearest_neighbors_on_degenerate_clouds(name):
     r = degenerate_clouds()[name]
     q = np.concatenate([r[:40], cloud(40, 3)])
-    d, i = g.nearest_neighbors(q, r)
-    np.testing.assert_array_equal(d, nn_naive(q, r))
-    assert (i >= 0).all() and (i < len(r)).all()
+    assert_nearest_naive(q, r, *g.nearest_neighbors(q, r))
+
+
+@pytest.mark.parametrize("shape", ["plane", "line"])
+@pytest.mark.parametrize(
+    "heights", [[1e3], [1e5], [1.0, 1e3, -1e5, 30.0, 1e5, -1e3]], ids=["1e3", "1e5", "mixed"]
+)
+def test_nearest_neighbors_far_from_a_tilted_plane_or_line(shape, heights):
+    # Audit K1: every point within about 2.5e-4 · H of a far query's foot ties with the nearest
+    # in float32, which made such queries O(n); the float64 ranking separates them.
+    query, reference = far_from_tilted(shape, 3000, heights, seed=11)
+    assert_nearest_naive(query, reference, *g.nearest_neighbors(query, reference))
+    np.testing.assert_allclose(
+        g.chamfer(query, reference), chamfer_naive(query, reference), rtol=1e-12
+    )
 
 
 def test_nearest_neighbors_batched_and_mismatched_batches():
@@ -229,7 +244,7 @@ def test_nearest_neighbors_batched_and_mismatched_batches():
     d, i = g.nearest_neighbors(q, r)
     assert d.shape == (4, 30)
     for b in range(4):
-        np.testing.assert_array_equal(d[b], nn_naive(q[b], r[b]))
+        assert_nearest_naive(q[b], r[b], d[b], i[b])
     with pytest.raises(ValueError, match=r"same size, got shapes \(4, 30, 3\) and \(3, 50, 3\)"):
         g.nearest_neighbors(q, r[:3])
     with pytest.raises(ValueError, match=r"query and reference must both be single clouds"):

@@ -136,6 +136,9 @@ def nearest_neighbors(
 ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
     """Exact nearest neighbour in ``reference`` of every ``query`` point (KD-tree).
 
+    The nearest point has the smallest squared distance computed in float64 from the float32
+    coordinates, the lowest index among equal ones; that distance is returned rounded to float32.
+
     Args:
         query: ``(Q, 3)`` or ``(B, Q, 3)``.
         reference: ``(R, 3)`` or ``(B, R, 3)``, batched like ``query``.
