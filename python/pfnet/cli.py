@@ -10,8 +10,9 @@ Command modules import heavy dependencies (torch, trimesh, matplotlib) inside ``
 that ``pfnet --help`` and ``import pfnet`` stay fast and work without torch.
 
 :func:`main` is the one error boundary. The errors in :data:`USER_ERRORS` (bad input, bad
-files, the machine's limits) and a missing PyTorch are printed in one line with exit code 1,
-Ctrl-C exits 130; every other exception is a bug and propagates with its traceback.
+files, the machine's limits), a symbolic link loop and a missing PyTorch are printed in one
+line with exit code 1, Ctrl-C exits 130; every other exception is a bug and propagates with
+its traceback.
 """
 
 from __future__ import annotations
@@ -50,6 +51,9 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
     *((errors.GeometryError,) if getattr(errors, "GeometryError", None) else ()),
 )
 """What :func:`main` reports in one line: errors of the user's input or of the machine."""
+
+SYMLINK_LOOP = "Symlink loop from "
+"""How ``Path.resolve()`` before Python 3.13 words the error of a symbolic link loop."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -97,6 +101,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"pfnet {args.command}: error: {_one_line(err)}", file=sys.stderr)
         return 1
     except RuntimeError as err:
+        if str(err).startswith(SYMLINK_LOOP):  # pathlib's resolve(); an OSError from 3.13 on
+            loop = str(err)[len(SYMLINK_LOOP) :]
+            print(f"pfnet {args.command}: error: a symbolic link loop: {loop}", file=sys.stderr)
+            return 1
         # torch.OutOfMemoryError (CPU or CUDA) is a RuntimeError; named so that this module
         # need not import torch
         if type(err).__name__ != "OutOfMemoryError":

@@ -170,6 +170,13 @@ def check_report_path(
             )
 
 
+def output_path(out: str | os.PathLike[str]) -> Path:
+    """``out`` with its folder resolved as the output checks see it ("new/../x.png" makes no
+    "new") and its last part kept: a symbolic link there is replaced, never written through."""
+    out = Path(out)
+    return out.parent.resolve() / out.name
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` that replaces ``path`` when the block succeeds.

@@ -63,11 +63,15 @@ def sample_metrics(
         two directions' mean unsquared distances) and ``f_score`` (harmonic mean of the fraction
         of predicted points within ``f_threshold`` of the ground truth and the reverse).
     """
-    if not (
-        isinstance(f_threshold, (int, float)) and math.isfinite(f_threshold) and f_threshold > 0
-    ):
+    try:  # an int beyond float64 (10**400) would raise OverflowError
+        threshold = float(f_threshold) if isinstance(f_threshold, (int, float)) else math.nan
+    except OverflowError:
+        threshold = math.inf
+    if not (math.isfinite(threshold) and threshold > 0):
         # -1 gave every sample an F-score of 1, NaN of 0
-        raise ConfigError(f"f_threshold must be a positive finite distance, got {f_threshold!r}")
+        raise ConfigError(
+            f"f_threshold must be a positive finite distance, got {f_threshold!r:.40}"
+        )
     pairs = _pairs(pred, gt)
     out = {name: np.zeros(len(pairs)) for name in METRICS}
     if not pairs:
@@ -85,7 +89,7 @@ def sample_metrics(
             )
             for p, g in pairs
         ]
-    t2 = float(f_threshold) ** 2
+    t2 = threshold**2
     for i, (pg, gp) in enumerate(rows):
         cd_pg, cd_gp = pg, gp
         if ignore_zeros:

@@ -169,7 +169,7 @@ def render_panels(
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from pfnet.io import atomic_path
+    from pfnet.io import atomic_path, output_path
 
     if not rows:
         raise ConfigError("nothing to draw (no samples)")
@@ -243,14 +243,17 @@ def render_panels(
                         ha="right",
                         fontsize=8,
                         multialignment="center",
+                        parse_math=False,  # a "$" in a file or category name is text
                     )
                 if r == 0:
                     suffix = f" ({azimuth:.0f}°)" if views > 1 else ""
-                    ax.set_title(name + suffix, fontsize=9)
+                    ax.set_title(name + suffix, fontsize=9, parse_math=False)
     # Inches kept free above the panels: the column titles, and the figure title above them.
     margin = 0.4 + (0.35 if title else 0.0)
     if title:
-        fig.suptitle(title, fontsize=10, y=1.0 - 0.1 / fig.get_figheight(), va="top")
+        fig.suptitle(
+            title, fontsize=10, y=1.0 - 0.1 / fig.get_figheight(), va="top", parse_math=False
+        )
     # Half an inch on the left for the row labels.
     fig.subplots_adjust(
         left=0.5 / fig.get_figwidth(),
@@ -258,7 +261,7 @@ def render_panels(
         bottom=0.0,
         top=1.0 - margin / fig.get_figheight(),
     )
-    out_path = Path(out).resolve()  # as the output checks saw it: "new/../x.png" makes no "new"
+    out_path = output_path(out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)

@@ -70,7 +70,7 @@ def write_viewer(
         MissingDependency: plotly is not installed.
     """
     from pfnet.errors import MissingDependency
-    from pfnet.io import atomic_path
+    from pfnet.io import atomic_path, output_path
     from pfnet.runtimes import has_module
 
     if not has_module("plotly"):
@@ -167,7 +167,7 @@ def write_viewer(
         if len(rows) > 1
         else [],
     )
-    out_path = Path(out).resolve()
+    out_path = output_path(out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:
         fig.write_html(

@@ -37,6 +37,7 @@ import sys
 from pathlib import Path
 
 from pfnet.errors import ConfigError, DataError
+from pfnet.rendering import MAX_ROWS
 from pfnet.study.orchestrate import reproduce, rewrite_report
 from pfnet.study.record import read_results
 from pfnet.study.report import checked_report, publish, publish_readme, read_readme
@@ -163,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--steps: at most {MAX_STEPS:,} steps a run")
         if args.epochs is not None:
             raise ConfigError("--epochs and --steps size the runs two ways; give one of them")
+    if not 1 <= args.gallery_count <= MAX_ROWS:  # the rows a picture holds
+        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
     if not 1 <= args.jobs <= MAX_JOBS:
         raise ConfigError(f"--jobs must be between 1 and {MAX_JOBS}; got {args.jobs}")
     if args.readme is not None:

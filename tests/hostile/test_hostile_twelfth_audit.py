@@ -1,0 +1,86 @@
+"""The twelfth hostile audit's breaks: pictures written through a planted link (W1), symbolic
+link loops as paths (X1), ``$`` in names and titles (X2), an unbounded ``reproduce
+--gallery-count`` (V1) and an F-score threshold beyond float64 (M1)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pfnet.cli import main
+from pfnet.errors import ConfigError
+
+
+@pytest.fixture
+def scan(tmp_path: Path) -> Path:
+    path = tmp_path / "scan.xyz"
+    np.savetxt(path, np.random.default_rng(0).random((300, 3)))
+    return path
+
+
+def test_pictures_replace_a_planted_link_never_write_through_it(
+    tmp_path: Path, scan: Path, tiny_dataset: Path
+) -> None:
+    from forge import write_predictions
+
+    victim = tmp_path / "outside" / "keep.txt"
+    victim.parent.mkdir()
+    victim.write_text("keep")
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    pictures = tmp_path / "pictures"
+    pictures.mkdir()
+    commands = {
+        "render.png": ["render", str(scan), "--out"],
+        "render.html": ["render", str(scan), "--html"],
+        "gallery.png": ["evaluate", str(pred), "--data", str(tiny_dataset), "--gallery"],
+    }
+    for name, command in commands.items():
+        link = pictures / name
+        link.symlink_to(victim)
+        assert main([*command, str(link)]) == 0
+        assert not link.is_symlink() and link.stat().st_size > 1000, name
+        assert victim.read_text() == "keep", name
+
+
+def test_a_symbolic_link_loop_is_one_line(
+    tmp_path: Path, scan: Path, tiny_dataset: Path, capsys
+) -> None:
+    loop = tmp_path / "L1"
+    loop.symlink_to(tmp_path / "L2")
+    (tmp_path / "L2").symlink_to(loop)
+    for args in (
+        ["complete", str(scan), "--out", str(loop)],
+        ["render", str(loop), "--out", str(tmp_path / "r.png")],
+        ["prepare", "procedural", "--out", str(loop), "--points", "512", "--count", "3"],
+        ["predict", "--data", str(loop), "--out", str(tmp_path / "p")],
+    ):
+        assert main(args) == 1, args
+        err = capsys.readouterr().err
+        assert f"error: a symbolic link loop: '{tmp_path}" in err, args
+        assert "Traceback" not in err
+
+
+def test_dollar_signs_in_names_and_titles_are_text(tmp_path: Path, scan: Path) -> None:
+    named = tmp_path / "x$^^$.xyz"
+    named.write_bytes(scan.read_bytes())
+    assert main(["render", str(named), "--out", str(tmp_path / "m.png")]) == 0
+    title = "$\\undefinedmacro$"
+    assert main(["render", str(scan), "--out", str(tmp_path / "t.png"), "--title", title]) == 0
+
+
+@pytest.mark.parametrize("count", ["0", "-5", "201"])
+def test_reproduce_gallery_count_is_bounded(tmp_path: Path, count: str, capsys) -> None:
+    out = tmp_path / "study"
+    assert main(["reproduce", "--report-only", "--out", str(out), "--gallery-count", count]) == 1
+    assert f"--gallery-count must be in [1, 200], got {count}" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_an_f_score_threshold_beyond_float64_is_refused() -> None:
+    from pfnet.metrics import sample_metrics
+
+    cloud = np.zeros((1, 4, 3), np.float32)
+    with pytest.raises(ConfigError, match="f_threshold must be a positive finite distance"):
+        sample_metrics(cloud, cloud, f_threshold=10**400)
