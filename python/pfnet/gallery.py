@@ -9,6 +9,32 @@ import numpy as np
 
 from pfnet.errors import DataError
 
+DEFAULT_ROWS = 8
+"""Rows of a ``--gallery`` when ``--gallery-count`` is not given."""
+
+
+def check_gallery_options(gallery: Path | None, count: int | None) -> int:
+    """The rows of ``--gallery`` (``--gallery-count``, default :data:`DEFAULT_ROWS`), checked
+    before any work (1,000 rows once failed after every prediction was made).
+
+    Raises:
+        ConfigError: A count outside [1, ``MAX_ROWS``] or without ``--gallery``, or a
+            gallery that is not a ``.png`` or ``.html`` file.
+    """
+    from pfnet.errors import ConfigError
+    from pfnet.rendering import MAX_ROWS
+
+    if gallery is None:
+        if count is not None:
+            raise ConfigError("--gallery-count applies only with --gallery")
+        return DEFAULT_ROWS
+    count = DEFAULT_ROWS if count is None else count
+    if not 1 <= count <= MAX_ROWS:
+        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {count}")
+    if Path(gallery).suffix.lower() not in (".png", ".html"):
+        raise ConfigError(f"--gallery must be a .png file (or .html), got {gallery}")
+    return count
+
 
 def pick_gallery(categories: list[str], count: int) -> list[int]:
     """Indices of up to ``count`` samples taken round-robin over the categories (sorted)."""

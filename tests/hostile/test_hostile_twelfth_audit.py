@@ -84,3 +84,56 @@ def test_an_f_score_threshold_beyond_float64_is_refused() -> None:
     cloud = np.zeros((1, 4, 3), np.float32)
     with pytest.raises(ConfigError, match="f_threshold must be a positive finite distance"):
         sample_metrics(cloud, cloud, f_threshold=10**400)
+
+
+def test_options_given_in_vain_or_twice_are_refused(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    """Audit 12 notes N2, N4: one file for two reports, options of another protocol or
+    without the option they qualify."""
+    from forge import write_predictions
+
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    base = ["evaluate", str(pred), "--data", str(tiny_dataset)]
+    same = str(tmp_path / "r.txt")
+    for extra, message in (
+        (["--json", same, "--csv", same], "--json, --csv and --gallery name the same file"),
+        (["--gallery-count", "5"], "--gallery-count applies only with --gallery"),
+        (["--reference-category", "chair"], "--reference-category applies to the kitti protocol"),
+    ):
+        assert main([*base, *extra]) == 1, extra
+        assert message in capsys.readouterr().err
+    assert not Path(same).exists()
+    out = tmp_path / "p"
+    predict = ["predict", "--data", str(tiny_dataset), "--out", str(out), "--gallery-count", "3"]
+    assert main(predict) == 1
+    assert "--gallery-count applies only with --gallery" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_train_refuses_other_folders_and_runs_sized_twice_or_beyond_bounds(
+    tmp_path: Path, tiny_dataset: Path, capsys
+) -> None:
+    """Audit 12 notes N3b, N5."""
+    from forge import write_predictions
+
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    (pred / "predictions.json").write_text("{}")  # as pfnet predict leaves it
+    before = sorted(p.name for p in pred.iterdir())
+    train = ["train", "--data", str(tiny_dataset), "--device", "cpu", "--out"]
+    for out, message in (
+        (tiny_dataset, "is a prepared data set; name a folder for the run"),
+        (pred, "is a prediction folder; name a folder for the run"),
+    ):
+        assert main([*train, str(out), "--steps", "1"]) == 1
+        assert message in capsys.readouterr().err
+    assert sorted(p.name for p in pred.iterdir()) == before
+    run = str(tmp_path / "run")
+    for extra, message in (
+        (["--steps", "2", "--epochs", "3"], "--epochs and --steps size the run two ways"),
+        (["--steps", str(10**12)], "steps must be an integer in [1, 100,000,000]"),
+        (["--epochs", str(10**12)], "epochs must be an integer in [1, 1,000,000]"),
+    ):
+        assert main([*train, run, *extra]) == 1, extra
+        assert message in capsys.readouterr().err
+    assert not Path(run).exists()

@@ -28,7 +28,6 @@ from pfnet.evaluation import (
     render_evaluation_gallery,
 )
 from pfnet.protocols import Protocol
-from pfnet.rendering import MAX_ROWS
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
 PROTOCOL_NAMES = ("pfnet", "pcn", "shapenet55", "shapenet34", "kitti")
@@ -70,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--reference-category",
-        default="car",
+        default=None,
         help="kitti protocol: the category of the reference cars (default: car)",
     )
     parser.add_argument(
@@ -98,27 +97,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="render samples into a PNG (or, .html, an interactive viewer)",
     )
     parser.add_argument(
-        "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
+        "--gallery-count", type=int, default=None, help="samples in the gallery (default: 8)"
     )
     parser.add_argument("--workers", type=int, default=None, help="file-reading threads")
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
+    from pfnet.gallery import check_gallery_options
     from pfnet.io import check_report_path
     from pfnet.metrics import summarize
     from pfnet.reports import format_table, write_csv
 
-    if args.gallery is not None and not 1 <= args.gallery_count <= MAX_ROWS:
-        # checked before the work: 1,000 rows once failed after every prediction was made
-        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
-    if args.gallery is not None and args.gallery.suffix.lower() not in (".png", ".html"):
-        raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
+    args.gallery_count = check_gallery_options(args.gallery, args.gallery_count)
+    given = [Path(p).resolve() for p in (args.json, args.csv, args.gallery) if p is not None]
+    if len(set(given)) < len(given):
+        raise ConfigError("--json, --csv and --gallery name the same file; name one for each")
     protocol = _scoring_protocol(args)
     if protocol != "pfnet":
         return _run_benchmark(args, protocol)
-    if args.references is not None:
-        raise ConfigError("--references applies to the kitti protocol, not to pfnet")
+    for flag, value in (
+        ("--references", args.references),
+        ("--reference-category", args.reference_category),
+    ):
+        if value is not None:
+            raise ConfigError(f"{flag} applies to the kitti protocol, not to pfnet")
     args.region = args.region or "missing"
     if args.pred_is_complete and args.region != "whole":
         raise ConfigError("--pred-is-complete needs --region whole")
@@ -202,8 +205,13 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
             "the kitti protocol needs --references CARS: a prepared data set holding complete "
             "car clouds (e.g. PCN prepared with --categories car) to measure MMD against"
         )
-    if protocol != "kitti" and args.references is not None:
-        raise ConfigError(f"--references applies to the kitti protocol, not to {protocol}")
+    for flag, value in (
+        ("--references", args.references),
+        ("--reference-category", args.reference_category),
+    ):
+        if protocol != "kitti" and value is not None:
+            raise ConfigError(f"{flag} applies to the kitti protocol, not to {protocol}")
+    args.reference_category = args.reference_category or "car"
     if args.workers is not None and not 1 <= args.workers <= MAX_WORKERS:
         raise ConfigError(f"--workers must be in [1, {MAX_WORKERS}], got {args.workers}")
     ratio = args.missing_ratio

@@ -20,7 +20,6 @@ from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
 from pfnet.inference import predict_benchmark, predict_split
 from pfnet.protocols import Protocol, get_protocol
-from pfnet.rendering import MAX_ROWS
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 from pfnet.shipped import CHECKPOINT_HELP
 
@@ -64,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also render some predictions into a PNG (or, .html, an interactive viewer)",
     )
     parser.add_argument(
-        "--gallery-count", type=int, default=8, help="samples in the gallery (default: 8)"
+        "--gallery-count", type=int, default=None, help="samples in the gallery (default: 8)"
     )
 
 
@@ -169,16 +168,15 @@ def _run_benchmark(args: argparse.Namespace) -> int:
 
 def _check_gallery(args: argparse.Namespace) -> None:
     """Check ``--gallery`` before predicting: never over the data or the checkpoint."""
+    from pfnet.gallery import check_gallery_options
+
+    args.gallery_count = check_gallery_options(args.gallery, args.gallery_count)
     if args.gallery is None:
         return
     from pfnet.data.format import split_categories
     from pfnet.io import check_report_path
     from pfnet.shipped import resolve_checkpoint
 
-    if not 1 <= args.gallery_count <= MAX_ROWS:  # 1,000 rows once failed after the work
-        raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
-    if args.gallery.suffix.lower() not in (".png", ".html"):
-        raise ConfigError(f"--gallery must be a .png file (or .html), got {args.gallery}")
     inputs = [args.data, resolve_checkpoint(args.checkpoint)]
     categories = split_categories(args.data, args.split)  # the folders to come
     check_report_path(args.gallery, args.out, inputs, flag="--gallery", categories=categories)

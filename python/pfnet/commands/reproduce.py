@@ -46,11 +46,11 @@ from pfnet.study.runs import (
     MAX_LENGTHS,
     MAX_RATIOS,
     MAX_SEEDS,
-    MAX_STEPS,
     STUDY_MODELS,
     STUDY_RATIOS,
     STUDY_SEEDS,
 )
+from pfnet.training.config import MAX_STEPS
 
 # Trainings side by side on one device: a GPU's host has a few cores per run to give.
 MAX_JOBS = 64

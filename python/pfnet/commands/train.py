@@ -104,6 +104,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
 
     With ``--resume`` the base is the run's stored ``config.json`` instead.
     """
+    if args.steps is not None and args.epochs is not None:
+        raise ConfigError("--epochs and --steps size the run two ways; give one of them")
     names = ("model", "crop", "precision", "compile", "augment_rotate", *OVERRIDES)
     overrides = {name: getattr(args, name) for name in names}
     overrides = {k: v for k, v in overrides.items() if v is not None}
@@ -133,6 +135,10 @@ def run(args: argparse.Namespace) -> int:
     config = build_config(args)
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} exists and is not a folder")
+    if (args.out / "manifest.json").is_file() or (args.out / "predictions.json").is_file():
+        from pfnet.io import other_kind
+
+        raise ConfigError(f"--out {args.out} is {other_kind(args.out)}; name a folder for the run")
     if not args.resume and (args.out / "last.pt").exists():
         raise ConfigError(
             f"{args.out} already holds a run (last.pt); pass --resume to continue it "

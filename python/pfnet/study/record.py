@@ -21,10 +21,10 @@ from pfnet.study.runs import (
     MAX_RATIOS,
     MAX_RUNS,
     MAX_SEEDS,
-    MAX_STEPS,
     STUDY_MODELS,
     study_runs,
 )
+from pfnet.training.config import MAX_STEPS
 
 # A study of MAX_RUNS runs is a few MB; the cap only keeps the JSON parser's memory bounded.
 MAX_RESULTS_BYTES = 64 << 20

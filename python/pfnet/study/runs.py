@@ -42,10 +42,6 @@ MAX_RATIOS = 3 * len(STUDY_RATIOS)
 MAX_LENGTHS = 4
 
 
-# The longest run a study trains or a record may list, in optimiser steps.
-MAX_STEPS = 100_000_000
-
-
 MAX_RUNS = (len(STUDY_MODELS) + MAX_RATIOS - 1) * MAX_SEEDS * MAX_LENGTHS
 
 

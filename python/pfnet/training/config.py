@@ -27,6 +27,11 @@ PRECISIONS = ("fp32", "bf16")
 # Fields that may change when a run is resumed; every other field must match the checkpoint.
 # (How a run executes may change; what it learns from may not.)
 MAX_WORKERS = 64  # data-loader processes of one run
+# The longest run, in optimiser steps or epochs: beyond them a run is a typo, not a plan
+# (10^12 steps of the smallest network would take millennia).
+MAX_STEPS = 100_000_000
+MAX_EPOCHS = 1_000_000
+
 RESUMABLE_FIELDS = ("epochs", "workers", "precision", "compile", "save_every")
 
 
@@ -248,7 +253,12 @@ def _validate(c: TrainConfig) -> None:
         "'paper' or 'small'",
     )
     require(c.init in INIT_SCHEMES, "init", c.init, f"one of {', '.join(INIT_SCHEMES)}")
-    require(is_int(c.epochs) and c.epochs >= 1, "epochs", c.epochs, "an integer >= 1")
+    require(
+        is_int(c.epochs) and 1 <= c.epochs <= MAX_EPOCHS,
+        "epochs",
+        c.epochs,
+        f"an integer in [1, {MAX_EPOCHS:,}]",
+    )
     require(
         is_int(c.batch_size) and c.batch_size >= 1, "batch_size", c.batch_size, "an integer >= 1"
     )
@@ -280,10 +290,10 @@ def _validate(c: TrainConfig) -> None:
         "and alphas >= 0",
     )
     require(
-        c.steps is None or (is_int(c.steps) and c.steps >= 1),
+        c.steps is None or (is_int(c.steps) and 1 <= c.steps <= MAX_STEPS),
         "steps",
         c.steps,
-        "an integer >= 1 (or unset: the run is sized in epochs)",
+        f"an integer in [1, {MAX_STEPS:,}] (or unset: the run is sized in epochs)",
     )
     milestones = c.lr_milestones
     require(
