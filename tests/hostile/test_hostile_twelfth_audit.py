@@ -121,8 +121,12 @@ def test_train_refuses_other_folders_and_runs_sized_twice_or_beyond_bounds(
     (pred / "predictions.json").write_text("{}")  # as pfnet predict leaves it
     before = sorted(p.name for p in pred.iterdir())
     train = ["train", "--data", str(tiny_dataset), "--device", "cpu", "--out"]
+    import shutil
+
+    other = tmp_path / "other-data"
+    shutil.copytree(tiny_dataset, other)
     for out, message in (
-        (tiny_dataset, "is a prepared data set; name a folder for the run"),
+        (other, "is a prepared data set; name a folder for the run"),
         (pred, "is a prediction folder; name a folder for the run"),
     ):
         assert main([*train, str(out), "--steps", "1"]) == 1
@@ -137,3 +141,23 @@ def test_train_refuses_other_folders_and_runs_sized_twice_or_beyond_bounds(
         assert main([*train, run, *extra]) == 1, extra
         assert message in capsys.readouterr().err
     assert not Path(run).exists()
+
+
+@pytest.mark.parametrize(
+    "categories, names, message",
+    [
+        (["chair\u202eriahc", "chair"], ["a", "b"], "contains the invisible"),
+        (["chair", "chair"], ["a", " "], "is only spaces"),
+        (["chair", "chair"], ["cabinet_1", "CABINET_1"], "differ only in case"),
+        (["Chair", "chair"], ["a", "b"], "categories Chair and chair differ only in case"),
+    ],
+)
+def test_names_that_display_or_land_as_other_names_are_refused(
+    categories: list[str], names: list[str], message: str
+) -> None:
+    """Audit 12 note N9: names are file names (PRED/<category>/<name>.npy)."""
+    from pfnet.data.format import CloudSet
+    from pfnet.errors import DataError
+
+    with pytest.raises(DataError, match=message):
+        CloudSet(np.zeros((2, 4, 3), np.float32), np.array(categories), np.array(names))

@@ -135,7 +135,9 @@ def run(args: argparse.Namespace) -> int:
     config = build_config(args)
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} exists and is not a folder")
-    if (args.out / "manifest.json").is_file() or (args.out / "predictions.json").is_file():
+    # --out equal to --data gets the shared check's message: outputs apart from the inputs
+    other = (args.out / "manifest.json").is_file() or (args.out / "predictions.json").is_file()
+    if other and args.out.resolve() != args.data.resolve():
         from pfnet.io import other_kind
 
         raise ConfigError(f"--out {args.out} is {other_kind(args.out)}; name a folder for the run")

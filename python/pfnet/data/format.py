@@ -20,6 +20,7 @@ import contextlib
 import json
 import os
 import shutil
+import unicodedata
 import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -99,6 +100,13 @@ def unsafe_component(text: str) -> str | None:
     bad = sorted({c for c in text if c in "/\\:" or ord(c) < 32 or ord(c) == 127})
     if bad:
         return f"contains {', '.join(repr(c) for c in bad)}: not allowed in a file name"
+    if not text.strip():
+        return "is only spaces"
+    # Format characters (right-to-left overrides, zero-width joiners...) make a file name
+    # display as another one
+    hidden = sorted({c for c in text if unicodedata.category(c) == "Cf"})
+    if hidden:
+        return f"contains the invisible {', '.join(repr(c) for c in hidden)}"
     if text == RECORD_NAME:  # pfnet prepare never makes one (safe_name renames it)
         return "is the name of the record predict writes beside the category folders"
     if text.startswith("."):  # pfnet prepare never makes one (safe_name strips the dot)
@@ -144,13 +152,27 @@ class CloudSet:
                 problem = unsafe_component(str(value))
                 if problem:
                     raise DataError(f"{label} {str(value)!r} {problem}")
-        pairs = set(zip(category.tolist(), name.tolist(), strict=True))
-        if len(pairs) != len(name):
-            seen: set[tuple[str, str]] = set()
+        pairs = {(c.casefold(), n.casefold()) for c, n in zip(category.tolist(), name.tolist())}
+        if len(pairs) != len(name):  # equal, or equal on a case-insensitive file system
+            seen: dict[tuple[str, str], tuple[str, str]] = {}
             for pair in zip(category.tolist(), name.tolist(), strict=True):
-                if pair in seen:
-                    raise DataError(f"shape {pair[0]}/{pair[1]} appears twice in the split")
-                seen.add(pair)
+                key = (pair[0].casefold(), pair[1].casefold())
+                if key in seen:
+                    if seen[key] == pair:
+                        raise DataError(f"shape {pair[0]}/{pair[1]} appears twice in the split")
+                    raise DataError(
+                        f"shapes {'/'.join(seen[key])} and {'/'.join(pair)} differ only in case: "
+                        "one file on a case-insensitive file system"
+                    )
+                seen[key] = pair
+        folded: dict[str, str] = {}
+        for cat in sorted(set(category.tolist())):
+            other = folded.setdefault(cat.casefold(), cat)
+            if other != cat:
+                raise DataError(
+                    f"categories {other} and {cat} differ only in case: one folder on a "
+                    "case-insensitive file system"
+                )
         extra = self.extra
         if extra is not None and (
             extra.ndim != 3
