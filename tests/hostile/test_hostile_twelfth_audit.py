@@ -161,3 +161,23 @@ def test_names_that_display_or_land_as_other_names_are_refused(
 
     with pytest.raises(DataError, match=message):
         CloudSet(np.zeros((2, 4, 3), np.float32), np.array(categories), np.array(names))
+
+
+def test_a_split_with_a_non_finite_cloud_is_named_when_loaded(
+    tmp_path: Path, tiny_dataset: Path
+) -> None:
+    """Audit 12 note N6: a NaN in test.npz was reported by a geometry call, without a file."""
+    import shutil
+
+    from pfnet.data import load_split
+    from pfnet.errors import DataError
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    test = load_split(data, "test")
+    points = test.points.copy()
+    points[2, 5, 1] = np.inf
+    np.savez(data / "test.npz", points=points, category=test.category, name=test.name)
+    shape = f"{test.category[2]}/{test.name[2]}"
+    with pytest.raises(DataError, match=f"test.npz: shape {shape} \\(index 2\\) holds NaN or inf"):
+        load_split(data, "test")

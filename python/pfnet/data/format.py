@@ -165,6 +165,12 @@ class CloudSet:
                         "one file on a case-insensitive file system"
                     )
                 seen[key] = pair
+        finite = np.isfinite(points).all(axis=(1, 2))
+        if not finite.all():  # named here, not by the geometry call that would meet it later
+            i = int(np.argmin(finite))
+            raise DataError(
+                f"shape {category[i]}/{name[i]} (index {i}) holds NaN or infinite coordinates"
+            )
         folded: dict[str, str] = {}
         for cat in sorted(set(category.tolist())):
             other = folded.setdefault(cat.casefold(), cat)
