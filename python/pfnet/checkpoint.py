@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pfnet.errors import DataError
+from pfnet.errors import ConfigError, DataError
 from pfnet.io import atomic_path
 from pfnet.models.config import ModelConfig
 
@@ -173,7 +173,10 @@ def load_checkpoint(
         state = read_checkpoint(path, device)
         config_dict, weights = state["config"], state["model"]
     config = ModelConfig.from_dict(config_dict, source=f"checkpoint {path}", extra="ignore")
-    check_weights(path, config, weights)
+    try:
+        check_weights(path, config, weights)
+    except ConfigError as err:  # a config that builds no network ("n_points is not set")
+        raise DataError(f"checkpoint {path}: {err}") from None
     model = build_model(config)
     try:
         model.load_state_dict(weights)  # copies float16 model files into float32 parameters

@@ -181,3 +181,18 @@ def test_a_split_with_a_non_finite_cloud_is_named_when_loaded(
     shape = f"{test.category[2]}/{test.name[2]}"
     with pytest.raises(DataError, match=f"test.npz: shape {shape} \\(index 2\\) holds NaN or inf"):
         load_split(data, "test")
+
+
+def test_a_checkpoint_whose_config_builds_no_network_is_named(tmp_path: Path) -> None:
+    """Audit 12 note N6: an empty config said "n_points is not set", not which file."""
+    pytest.importorskip("torch")
+    from pfnet.checkpoint import load_checkpoint, save_checkpoint
+    from pfnet.errors import DataError
+    from pfnet.models import build_model
+    from pfnet.training.config import preset_config
+
+    config = preset_config("small").replace(n_points=512, width=0.125)
+    path = tmp_path / "empty-config.pt"
+    save_checkpoint(path, {"config": {}, "model": build_model(config).state_dict()})
+    with pytest.raises(DataError, match=f"checkpoint {path}: n_points is not set"):
+        load_checkpoint(path)
