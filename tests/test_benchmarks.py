@@ -275,6 +275,25 @@ def test_shapenet55_prepare_predict_evaluate(shapenet_tree, tmp_path, capsys, mo
     got = evaluate_benchmark(pred, data, "shapenet55", missing_ratio=0.75).per_sample
     assert got["cd_l2"][0] == pytest.approx(want["cd_l2"], rel=1e-6)
     assert report["categories"]["02691156"]["n"] == 16
+    # the record lists each shape once with its 8 endings; --overwrite with another split
+    # removes exactly those files, and none while a file of the user's is among them
+    record = json.loads((pred / "predictions.json").read_text())
+    endings = [f"_view{v}.npy" for v in range(8)]
+    assert record["files"] == {
+        "endings": endings,
+        "names": {c: sorted(test.name[test.category == c]) for c in test.categories},
+    }
+    np.save(pred / "04379243" / "mine_view0.npy", first)
+    before = sorted(pred.rglob("*"))
+    assert main(["predict", *args, "--split", "train", "--overwrite"]) == 1
+    assert "does not list (04379243/mine_view0.npy)" in capsys.readouterr().err
+    assert sorted(pred.rglob("*")) == before
+    (pred / "04379243" / "mine_view0.npy").unlink()
+    assert main(["predict", *args, "--split", "train", "--overwrite"]) == 0
+    train = load_split(data, "train")
+    assert sorted(str(p.relative_to(pred)) for p in pred.rglob("*.npy")) == sorted(
+        f"{c}/{n}{e}" for c, n in zip(train.category, train.name, strict=True) for e in endings
+    )
     assert (
         main(
             [

@@ -177,6 +177,8 @@ def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys
 
     assert main(["predict", "--data", str(data), "--out", str(pred), "--protocol", "kitti"]) == 0
     assert "--protocol kitti --references CARS" in capsys.readouterr().out
+    record = json.loads((pred / "predictions.json").read_text())
+    assert record["files"] == {"endings": [".npy"], "names": {"car": list(cars.name)}}
     inputs = {}
     for model, *_ in CARS:
         points = truth[model]

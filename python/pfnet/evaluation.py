@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
+from pfnet.inference import MAX_RECORD_BYTES
 from pfnet.protocols import check_protocol_data, get_protocol
 
 PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".pcd", ".xyz", ".pts", ".txt")
@@ -382,8 +383,11 @@ def recorded_protocol(
         return None
     if not record.is_file():  # a folder here was once taken for no record at all
         raise DataError(f"cannot read {record}: not a file")
-    if record.stat().st_size > 1 << 20:  # predict writes a few hundred bytes
-        raise DataError(f"cannot read {record}: larger than 1 MB, not pfnet predict's record")
+    if record.stat().st_size > MAX_RECORD_BYTES:  # predict lists its files within the bound
+        raise DataError(
+            f"cannot read {record}: larger than {MAX_RECORD_BYTES >> 20} MB, not pfnet "
+            "predict's record"
+        )
     try:
         info = json.loads(record.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError) as err:

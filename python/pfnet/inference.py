@@ -4,7 +4,7 @@
 :func:`predict_missing`. Output of :func:`predict_split`, ready for ``pfnet evaluate``::
 
     PRED/<category>/<name>.npy    float32 (M, 3): the predicted missing region
-    PRED/predictions.json         checkpoint, data, split, protocol and model
+    PRED/predictions.json         checkpoint, data, split, protocol, model, files written
 """
 
 from __future__ import annotations
@@ -12,24 +12,29 @@ from __future__ import annotations
 import json
 import os
 import re
-import secrets
-import shutil
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.protocols import check_protocol_data, get_protocol
+from pfnet.protocols import PROTOCOLS, check_protocol_data, get_protocol
 
 # A prediction is in the frame of its partial cloud normalised to the unit ball, where the true
 # missing region lies within radius 1 and a working model's points stay within a few radii.
 # A point a thousand radii out is no completion but a broken or forged model (weights that
 # overflow, a graph that outputs 1e30), and mapped back it could leave float32.
 MAX_PREDICTED_RADIUS = 1e3
-# Skipped shapes named in predictions.json (its reader takes at most 1 MB).
+# Skipped shapes named in predictions.json.
 MAX_SKIPPED_LISTED = 100
+# The most a predictions.json may take; its readers (here and in pfnet.evaluation) refuse a
+# larger one. The names of the files its run wrote are its bulk, each shape's name listed once
+# with the endings of its views: 53 KB for PCN's test split (1,200 shapes), 0.46 MB for
+# ShapeNet-55's (10,432 shapes, 83,456 files), 1.8 MB for its train split. 8 MB of the
+# shortest names took 0.8 s and 104 MiB to read. A run whose list would not fit records
+# none, and --overwrite refuses its folder.
+MAX_RECORD_BYTES = 8 << 20
 
 
 def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.ndarray:
@@ -74,19 +79,12 @@ def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.nda
     return detail.astype(np.float32, copy=False)  # after the bound: float64 1e300 would warn
 
 
-# What pfnet predict leaves in a prediction folder besides its category folders: the record,
-# a record whose atomic write was interrupted, and the folders being replaced (hidden).
+# What pfnet predict leaves in a prediction folder besides its category folders: the record
+# and a record whose atomic write was interrupted; in a category folder besides the files the
+# record lists, a prediction whose atomic write (pfnet.io.atomic_path) was interrupted.
 _RECORD = "predictions.json"
 _RECORD_TMP = re.compile(r"\.predictions\.[0-9a-f]{12}\.tmp\.json")
-_REPLACED = ".pfnet-replaced-"
-
-
-# What open_prediction_folder and atomic_path name: a hidden folder of replaced predictions,
-# and a prediction whose atomic write was interrupted.
-_REPLACED_FOLDER = re.compile(r"\.pfnet-replaced-[0-9a-f]{12}")
-
-
-_PREDICTION_TMP = re.compile(r"\..+\.[0-9a-f]{12}\.tmp\.npy")
+_PREDICTION_TMP = re.compile(r"\.(.+)\.[0-9a-f]{12}\.tmp\.npy")
 
 
 def check_prediction_folder(
@@ -97,22 +95,25 @@ def check_prediction_folder(
     A run is its data set, split and protocol (the name ``predictions.json`` records; ``test``
     for the pfnet protocol). A folder of the same run is predicted again as it is, file by
     file; one of another run would mix two runs' files under the new record. With
-    ``overwrite`` its old predictions are removed by :func:`open_prediction_folder`: only a
-    folder that pfnet predict wrote and that holds nothing else.
+    ``overwrite`` its old predictions are removed by :func:`open_prediction_folder`: exactly
+    the files its record lists (:func:`run_files`), and their category folders, and only when
+    the folder holds nothing else (interrupted writes of those files aside).
 
     Returns:
-        The folders in ``out`` to remove before predicting (none for the same run).
+        The files, then the category folders, to remove before predicting (none for the same
+        run).
 
     Raises:
         DataError: Another run's folder without ``overwrite``; with it, a folder whose record
-            cannot be read or that holds files pfnet predict did not write.
+            cannot be read or does not list its files, or that holds files it does not list.
     """
     out = Path(out)
     record = out / _RECORD
     if not out.is_dir() or (not record.exists() and not record.is_symlink()):
         return []  # new, or files of the user's: predictions are added beside them
     this = {"data": str(Path(data_dir).resolve()), "split": split, "protocol": protocol}
-    recorded = _recorded_run(record)
+    info = _read_record(record)
+    recorded = _recorded_run(info)
     if recorded is not None and recorded["data"] is None:  # a record of an older pfnet
         this["data"] = None
     if recorded == this:
@@ -132,32 +133,54 @@ def check_prediction_folder(
             f"{out}: its {_RECORD} cannot be read, so it is not a folder pfnet predict wrote; "
             "overwriting only replaces one"
         )
-    owned = _recorded_categories(record)
-    if owned is None:
+    listed = _recorded_files(info)
+    if listed is None:
+        folders = sorted(info["categories"]) if _names(info.get("categories")) else []
+        where = f" (it names the category folders {_shown(folders)})" if folders else ""
         raise DataError(
-            f"{out}: its {_RECORD} does not name its categories (an older pfnet wrote it), so "
-            "which folders hold its predictions is not known; remove them yourself or choose "
-            "another prediction folder"
+            f"{out}: its {_RECORD} does not list the files of its predictions (older pfnet "
+            "versions, and runs of more files than a record holds, do not), so which files "
+            f"they are is not known; remove them yourself{where} or choose another "
+            "prediction folder"
         )
-    replaced, others = [], []
+    stems, endings = listed
+
+    def is_listed(category: str, file: Path) -> bool:
+        name = file.name
+        if (interrupted := _PREDICTION_TMP.fullmatch(name)) is not None:
+            name = f"{interrupted.group(1)}.npy"
+        return _plain_file(file) and any(
+            name.endswith(ending) and name[: -len(ending)] in stems[category] for ending in endings
+        )
+
+    files, folders, others = [], [], []
     for entry in sorted(out.iterdir()):
         if entry.name == _RECORD or (_RECORD_TMP.fullmatch(entry.name) and _plain_file(entry)):
             continue
-        if (entry.name in owned and _category_folder(entry)) or (
-            _REPLACED_FOLDER.fullmatch(entry.name)  # left by an interrupted replacement
-            and _plain_folder(entry)
-            and all(map(_category_folder, entry.iterdir()))
-        ):
-            replaced.append(entry)
-        else:
+        if entry.name not in stems or not _plain_folder(entry):
             others.append(entry.name)
+            continue
+        for file in sorted(entry.iterdir()):
+            if is_listed(entry.name, file):
+                files.append(file)
+            else:
+                others.append(f"{entry.name}/{file.name}")
+        folders.append(entry)
     if others:
-        raise DataError(
-            f"{out}: holds files pfnet predict did not write ({', '.join(others[:3])}"
-            f"{', ...' if len(others) > 3 else ''}); overwriting would delete them, so move "
-            "them out first or choose another prediction folder"
-        )
-    return replaced
+        raise _unlisted(out, others)
+    return files + folders
+
+
+def _unlisted(out: Path, others: list[str]) -> DataError:
+    return DataError(
+        f"{out} holds files its {_RECORD} does not list ({_shown(others)}); --overwrite "
+        "replaces only a folder of nothing but the listed files, so move these out first or "
+        "choose another prediction folder"
+    )
+
+
+def _shown(names: list[str]) -> str:
+    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
 
 
 def _plain_file(path: Path) -> bool:
@@ -168,67 +191,99 @@ def _plain_folder(path: Path) -> bool:
     return path.is_dir() and not path.is_symlink()
 
 
-def _category_folder(path: Path) -> bool:
-    """A folder (not a link) of files that pfnet predict writes: predictions, or ones whose
-    atomic write was interrupted (``.<name>.<hex>.tmp.npy``)."""
-    return _plain_folder(path) and all(
-        f.suffix == ".npy"
-        and _plain_file(f)
-        and (not f.name.startswith(".") or _PREDICTION_TMP.fullmatch(f.name) is not None)
-        for f in path.iterdir()
-    )
+def _names(value: Any) -> bool:
+    return isinstance(value, list) and all(isinstance(n, str) for n in value)
 
 
-def _recorded_categories(record: Path) -> set[str] | None:
-    """The category folders a ``predictions.json`` names (None when it names none: records
-    of pfnet versions before it did)."""
+def _read_record(record: Path) -> Any:
+    """A ``predictions.json`` document, None if it cannot be read or passes
+    :data:`MAX_RECORD_BYTES`."""
     try:
-        info = json.loads(record.read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
-        return None
-    names = info.get("categories") if isinstance(info, dict) else None
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        return None
-    return set(names)
-
-
-def _recorded_run(record: Path) -> dict[str, Any] | None:
-    """The data set, split and protocol a ``predictions.json`` records, None if it cannot be
-    read (the data set None in an unfinished record of an older pfnet, which did not name it)."""
-    try:
-        if not _plain_file(record) or record.stat().st_size > 1 << 20:
+        if not _plain_file(record) or record.stat().st_size > MAX_RECORD_BYTES:
             return None
-        info = json.loads(record.read_text(encoding="utf-8"))
+        return json.loads(record.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError):
         return None
+
+
+def _recorded_run(info: Any) -> dict[str, Any] | None:
+    """The data set, split and protocol a ``predictions.json`` document records, None if it
+    records none (the data set None in an unfinished record of an older pfnet, which did not
+    name it)."""
     if not isinstance(info, dict) or not isinstance(info.get("protocol"), dict):
         return None
     name = info["protocol"].get("name", "test")
     return {"data": info.get("data"), "split": info.get("split"), "protocol": name}
 
 
+def _recorded_files(info: dict[str, Any]) -> tuple[dict[str, set[str]], list[str]] | None:
+    """The names listed under each category folder and the endings of a record's ``files``
+    (:func:`run_files`), None when it lists none: records of pfnet versions before it did,
+    and of runs whose list would pass :data:`MAX_RECORD_BYTES`."""
+    files = info.get("files")
+    if not isinstance(files, dict) or not isinstance(files.get("names"), dict):
+        return None
+    names, endings = files["names"], files.get("endings")
+    views = max(p.views for p in PROTOCOLS.values())
+    if not (
+        _names(endings)
+        and 1 <= len(endings) <= views
+        and all(e.endswith(".npy") for e in endings)
+        and all(map(_names, names.values()))
+    ):
+        return None
+    return {category: set(listed) for category, listed in names.items()}, endings
+
+
+def run_files(
+    categories: Sequence[Any],
+    names: Sequence[Any],
+    suffixes: Sequence[str] = ("",),
+    *,
+    skipped: Collection[str] = (),
+) -> dict[str, Any]:
+    """The ``files`` a prediction run records: it writes ``<category>/<name><ending>`` for each
+    shape (``<category>/<name>`` not in ``skipped``) and each ending (``<suffix>.npy``, one
+    per view of the protocol: :attr:`pfnet.protocols.Protocol.suffixes`), in a folder for
+    each category.
+
+    Returns:
+        ``{"endings": [...], "names": {category: [sorted names]}}``; ``--overwrite`` removes
+        only these files (:func:`check_prediction_folder`).
+    """
+    listed: dict[str, list[str]] = {str(category): [] for category in categories}
+    for category, name in zip(categories, names, strict=True):
+        if f"{category}/{name}" not in skipped:
+            listed[str(category)].append(str(name))
+    return {
+        "endings": [f"{suffix}.npy" for suffix in suffixes],
+        "names": {category: sorted(listed[category]) for category in sorted(listed)},
+    }
+
+
 def open_prediction_folder(
     out: Path,
-    categories: list[str],
+    files: dict[str, Any],
     split: str,
     protocol: dict[str, Any],
     *,
     data_dir: str | os.PathLike[str],
     replaced: Sequence[Path] = (),
 ) -> None:
-    """Make ``out`` and its category folders, with a ``predictions.json`` that says the run is
-    not complete (``evaluate`` refuses it until the last file is written).
+    """Make ``out`` and the category folders of ``files`` (:func:`run_files`), with a
+    ``predictions.json`` that lists them and says the run is not complete (``evaluate``
+    refuses it until the last file is written).
 
-    The folders ``replaced`` (another run's, :func:`check_prediction_folder`) are first moved
-    into one hidden folder in ``out`` (a rename each), then the record is written, then they
-    are deleted: an interrupted run never leaves another run's files beside its record. Such
-    a hidden folder left by an earlier, interrupted run is deleted too.
+    The files and then the folders ``replaced`` (another run's, :func:`check_prediction_folder`)
+    are removed first, then the record is written: an interrupted run never leaves another
+    run's files beside its record, and the old record, which lists those left, stays until
+    then.
 
     Raises:
-        DataError: A category folder is a link out of ``out``.
+        DataError: A category folder is a link out of ``out``; a folder ``replaced`` holds a
+            file put there since it was checked.
     """
-    from pfnet.io import atomic_path
-
+    categories = list(files["names"])
     for category in categories:
         folder = out / category
         # a folder that is a symbolic link (or resolves elsewhere) would take the
@@ -240,30 +295,44 @@ def open_prediction_folder(
                 f"{folder} is a link out of the prediction folder {out}; remove it first"
             )
     out.mkdir(parents=True, exist_ok=True)
-    trash = out / f"{_REPLACED}{secrets.token_hex(6)}"
-    if replaced:
-        trash.mkdir()
-        for folder in replaced:
-            folder.rename(trash / folder.name)
+    for path in replaced:  # each file, then its folder, as check_prediction_folder found them
+        if not _plain_folder(path):
+            path.unlink(missing_ok=True)
+            continue
+        try:
+            path.rmdir()
+        except FileNotFoundError:
+            pass
+        except OSError:
+            added = sorted(f"{path.name}/{file.name}" for file in path.iterdir())
+            if not added:
+                raise
+            raise _unlisted(out, added) from None
     record = {
         "complete": False,
         "data": str(Path(data_dir).resolve()),
         "split": split,
         "protocol": protocol,
-        "categories": sorted(categories),  # the folders --overwrite may replace
+        "categories": sorted(categories),
+        "files": files,  # the files --overwrite may remove
     }
-    with atomic_path(out / _RECORD) as tmp:
-        tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
-    shutil.rmtree(trash, ignore_errors=True)
-    for leftover in out.iterdir():  # of a replacement interrupted before its last step
-        if (
-            _REPLACED_FOLDER.fullmatch(leftover.name)
-            and _plain_folder(leftover)
-            and all(map(_category_folder, leftover.iterdir()))
-        ):
-            shutil.rmtree(leftover, ignore_errors=True)
+    _write_record(out, record, indent=None)
     for category in categories:
         (out / category).mkdir(exist_ok=True)
+
+
+def _write_record(out: Path, info: dict[str, Any], indent: int | None) -> dict[str, Any]:
+    """Write ``info`` as ``out/predictions.json``, atomically; its ``files`` None when listing
+    them would pass :data:`MAX_RECORD_BYTES` (``--overwrite`` then refuses the folder)."""
+    from pfnet.io import atomic_path
+
+    text = json.dumps(info, indent=indent) + "\n"
+    if len(text.encode("utf-8")) > MAX_RECORD_BYTES:
+        info = {**info, "files": None}
+        text = json.dumps(info, indent=indent) + "\n"
+    with atomic_path(out / _RECORD) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return info
 
 
 def write_record(
@@ -271,7 +340,7 @@ def write_record(
     checkpoint: Any,
     data_dir: str | os.PathLike[str],
     split: str,
-    categories: list[str],
+    files: dict[str, Any],
     runtime: str,
     device: str,
     *,
@@ -282,11 +351,10 @@ def write_record(
 ) -> dict[str, Any]:
     """Write the ``predictions.json`` of a finished prediction run into ``out``; returns it.
 
-    It names the checkpoint, data set, split, the category folders (which ``--overwrite``
-    may replace), the protocol and the model; ``extra`` keys (``skipped``...) come after
-    the sample count.
+    It names the checkpoint, data set, split, the category folders, the protocol and the
+    model; ``extra`` keys (``skipped``...) come after the sample count, and last the files
+    the run wrote (:func:`run_files`; which ``--overwrite`` may remove).
     """
-    from pfnet.io import atomic_path
     from pfnet.shipped import describe
 
     info = {
@@ -294,17 +362,16 @@ def write_record(
         "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,
-        "categories": sorted(categories),
+        "categories": sorted(files["names"]),
         "protocol": protocol,
         "model": model,
         "n_samples": n_samples,
         **extra,
         "device": device,
         "runtime": runtime,
+        "files": files,
     }
-    with atomic_path(out / _RECORD) as tmp:
-        tmp.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
-    return info
+    return _write_record(out, info, indent=2)
 
 
 def predict_missing(
@@ -421,10 +488,10 @@ def predict_split(
     )
 
     out = Path(out_dir)
-    categories = sorted(set(map(str, clouds.category)))
+    files = run_files(clouds.category, clouds.name)
     open_prediction_folder(
         out,
-        categories,
+        files,
         split,
         {"name": "test", "missing_ratio": ratio},
         data_dir=data_dir,
@@ -437,7 +504,7 @@ def predict_split(
         checkpoint,
         data_dir,
         split,
-        categories,
+        files,
         loaded.runtime,
         device,
         protocol={
@@ -552,12 +619,13 @@ def predict_benchmark(
     loaded = load_generator(checkpoint, runtime=runtime, device=device)
     model, config, device = loaded.model, loaded.config, loaded.device
     n_input = int(model.n_points) - int(model.n_missing)
-    categories = sorted(set(map(str, clouds.category)))
+    files = run_files(clouds.category, clouds.name, chosen.suffixes)
     open_prediction_folder(
-        out, categories, split, {"name": chosen.name}, data_dir=data_dir, replaced=replaced
+        out, files, split, {"name": chosen.name}, data_dir=data_dir, replaced=replaced
     )
     n_predicted = 0
     skipped: list[str] = []
+    skipped_keys: set[str] = set()
     for start in range(0, len(clouds), chunk):
         stop = min(start + chunk, len(clouds))
         keys = [
@@ -571,6 +639,7 @@ def predict_benchmark(
                     rows.append((p, normalisation(p, f"{k[0]} (partial scan)"), k[0]))
                 except DataError as err:
                     skipped.append(str(err))
+                    skipped_keys.add(k[0])
                     (out / f"{k[0]}.npy").unlink(missing_ok=True)  # no earlier run's file
             if not rows:
                 continue
@@ -596,7 +665,7 @@ def predict_benchmark(
         checkpoint,
         data_dir,
         split,
-        categories,
+        run_files(clouds.category, clouds.name, chosen.suffixes, skipped=skipped_keys),
         loaded.runtime,
         device,
         protocol={
@@ -680,9 +749,9 @@ def predict_kitti(
     loaded = load_generator(checkpoint, runtime=runtime, device=device)
     model, config, device = loaded.model, loaded.config, loaded.device
     n_input = int(model.n_points) - int(model.n_missing)
-    categories = sorted(set(map(str, cars.category)))
+    files = run_files(cars.category, cars.name)
     open_prediction_folder(
-        out, categories, split, {"name": "kitti"}, data_dir=data_dir, replaced=replaced
+        out, files, split, {"name": "kitti"}, data_dir=data_dir, replaced=replaced
     )
     n_predicted = 0
     for start in range(0, len(cars), chunk):
@@ -701,7 +770,7 @@ def predict_kitti(
         checkpoint,
         data_dir,
         split,
-        categories,
+        files,
         loaded.runtime,
         device,
         protocol={

@@ -108,11 +108,14 @@ class Protocol:
     ignore_zeros: bool
     source: str
 
+    @property
+    def suffixes(self) -> list[str]:
+        """What follows a shape's name in the stem of each of its prediction files."""
+        return [""] if self.views == 1 else [f"_view{v}" for v in range(self.views)]
+
     def sample_keys(self, category: str, name: str) -> list[str]:
         """The ``<category>/<file stem>`` of each prediction file of one shape."""
-        if self.views == 1:
-            return [f"{category}/{name}"]
-        return [f"{category}/{name}_view{v}" for v in range(self.views)]
+        return [f"{category}/{name}{suffix}" for suffix in self.suffixes]
 
 
 _POINTR_METRICS = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")

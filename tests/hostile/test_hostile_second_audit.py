@@ -13,6 +13,7 @@ import pytest
 from forge import write_predictions
 
 from pfnet.cli import main
+from pfnet.inference import MAX_RECORD_BYTES
 from pfnet.io import read_point_cloud, write_ply
 
 
@@ -214,6 +215,12 @@ def test_an_unreadable_record_gives_a_short_line(
     assert main(["evaluate", str(pred), "--data", str(tiny_dataset)]) == 1
     err = capsys.readouterr().err
     assert "cannot read" in err and len(err) < 600
+    # one larger than predict ever writes (its list of files included) is not read at all
+    with open(pred / "predictions.json", "wb") as record:
+        record.truncate(MAX_RECORD_BYTES + 1)  # sparse
+    assert main(["evaluate", str(pred), "--data", str(tiny_dataset)]) == 1
+    err = capsys.readouterr().err
+    assert "predictions.json: larger than 8 MB, not pfnet predict's record" in err
 
 
 def test_render_refuses_more_rows_than_a_picture_can_show(tmp_path: Path, capsys) -> None:

@@ -179,6 +179,9 @@ def test_pcn_prepare_refuses_degenerate_shapes_and_predict_skips_them(tmp_path, 
     assert sorted(p.stem for p in (out / "airplane").iterdir()) == [test.name[0], test.name[2]]
     record = json.loads((out / "predictions.json").read_text())
     assert record["complete"] and record["n_skipped"] == 1 and bad in record["skipped"][0]
+    # the files it wrote: the skipped shape's is not among them
+    want = {"endings": [".npy"], "names": {"airplane": sorted([test.name[0], test.name[2]])}}
+    assert record["files"] == want
     # evaluate lists the skipped shape as missing and scores the rest
     evaluation = evaluate_benchmark(out, data, "pcn")
     assert evaluation.missing == [bad] and len(evaluation.categories) == 2
