@@ -67,6 +67,42 @@ def test_predict_writes_one_file_per_sample(tmp_path, tiny_dataset, checkpoint, 
     assert main(["evaluate", str(out), "--data", str(tiny_dataset)]) == 0
 
 
+def test_evaluate_refuses_other_clouds_under_the_same_names(
+    tmp_path, tiny_dataset, checkpoint, capsys
+):
+    """Audit 12 note N1: a copy of the data set with other test clouds under the same names
+    was scored silently; the record holds the digest of the split file predicted from."""
+    import hashlib
+    import shutil
+
+    path, _, _ = checkpoint
+    out, copy = tmp_path / "pred", tmp_path / "copy"
+    args = ["predict", "--checkpoint", str(path), "--data", str(tiny_dataset), "--out", str(out)]
+    assert main([*args, "--device", "cpu"]) == 0
+    info = json.loads((out / "predictions.json").read_text())
+    test_file = (tiny_dataset / "test.npz").read_bytes()
+    assert info["split_sha256"] == hashlib.sha256(test_file).hexdigest()
+    shutil.copytree(tiny_dataset, copy)
+    assert main(["evaluate", str(out), "--data", str(copy)]) == 0  # the same clouds elsewhere
+    clouds = load_split(copy, "test")
+    np.savez(
+        copy / "test.npz",
+        points=clouds.points[:, ::-1].copy(),
+        category=clouds.category,
+        name=clouds.name,
+    )
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--data", str(copy)]) == 1
+    err = capsys.readouterr().err
+    assert f"{out} was predicted from other test clouds than those of {copy}" in err
+    ignore = ["evaluate", str(out), "--data", str(copy), "--ignore-recorded-protocol"]
+    assert main(ignore) == 0
+    info["split_sha256"] = "not a digest"
+    (out / "predictions.json").write_text(json.dumps(info))
+    assert main(["evaluate", str(out), "--data", str(tiny_dataset)]) == 1
+    assert '"split_sha256" must be a SHA-256 in hex, got "not a digest"' in capsys.readouterr().err
+
+
 def test_predict_is_deterministic_and_batch_independent(tmp_path, tiny_dataset, checkpoint):
     path = checkpoint[0]
     a = predict_split(path, tiny_dataset, tmp_path / "a", batch_size=1, device="cpu")

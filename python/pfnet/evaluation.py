@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -378,6 +379,41 @@ def recorded_protocol(
     Raises:
         DataError: If the record exists but cannot be read.
     """
+    info = _read_record(pred_dir)
+    if info is None:
+        return None
+    protocol = info["protocol"]
+    ratio = protocol.get("missing_ratio")
+    return info["split"], None if ratio is None else float(ratio), protocol.get("n_points")
+
+
+def recorded_data_problem(
+    pred_dir: str | os.PathLike[str], data_dir: str | os.PathLike[str], split: str
+) -> str | None:
+    """Why ``PRED/predictions.json`` says its predictions come from other clouds than the
+    ``split`` of ``data_dir`` (the digest of the split file differs), or None (the same
+    clouds, or a record without a digest or of another split, which other checks report).
+
+    Raises:
+        DataError: If the record exists but cannot be read.
+    """
+    from pfnet.data.format import split_digest
+
+    info = _read_record(pred_dir)
+    if info is None or info["split"] != split or "split_sha256" not in info:
+        return None
+    if split_digest(data_dir, split) == info["split_sha256"]:
+        return None
+    made_from = info.get("data") if isinstance(info.get("data"), str) else "another data set"
+    return (
+        f"{pred_dir} was predicted from other {split} clouds than those of {data_dir} (the "
+        f"digest its predictions.json records differs; made from {made_from[:200]!r}): score "
+        "it against the data set it was predicted on, or pass --ignore-recorded-protocol"
+    )
+
+
+def _read_record(pred_dir: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """``PRED/predictions.json``, checked by :func:`_record_problem`, or None without one."""
     record = Path(pred_dir) / "predictions.json"
     if not record.exists() and not record.is_symlink():
         return None
@@ -401,9 +437,7 @@ def recorded_protocol(
             f"{record} says its prediction run stopped before writing every file (the "
             "folder may mix old and new predictions); run pfnet predict again"
         )
-    protocol = info["protocol"]
-    ratio = protocol.get("missing_ratio")
-    return info["split"], None if ratio is None else float(ratio), protocol.get("n_points")
+    return info
 
 
 def _record_problem(info: Any) -> str | None:
@@ -425,6 +459,9 @@ def _record_problem(info: Any) -> str | None:
         return f'"complete" must be true or false, got {shown(info["complete"])}'
     if not isinstance(info.get("split"), str):
         return f'"split" must be a split\'s name, got {shown(info.get("split"))}'
+    digest = info.get("split_sha256", "0" * 64)  # older records have none
+    if not (isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest)):
+        return f'"split_sha256" must be a SHA-256 in hex, got {shown(digest)}'
     protocol = info.get("protocol")
     if not isinstance(protocol, dict):
         return f'"protocol" must be an object, got {shown(protocol)}'

@@ -351,10 +351,11 @@ def write_record(
 ) -> dict[str, Any]:
     """Write the ``predictions.json`` of a finished prediction run into ``out``; returns it.
 
-    It names the checkpoint, data set, split, the category folders, the protocol and the
-    model; ``extra`` keys (``skipped``...) come after the sample count, and last the files
-    the run wrote (:func:`run_files`; which ``--overwrite`` may remove).
+    It names the checkpoint, data set, split (and its file's digest), the category folders,
+    the protocol and the model; ``extra`` keys (``skipped``...) come after the sample count,
+    and last the files the run wrote (:func:`run_files`; which ``--overwrite`` may remove).
     """
+    from pfnet.data.format import split_digest
     from pfnet.shipped import describe
 
     info = {
@@ -362,6 +363,7 @@ def write_record(
         "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,
+        "split_sha256": split_digest(data_dir, split),  # evaluate refuses other clouds
         "categories": sorted(files["names"]),
         "protocol": protocol,
         "model": model,

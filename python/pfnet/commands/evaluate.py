@@ -23,6 +23,7 @@ from pfnet.evaluation import (
     evaluate_benchmark,
     evaluate_kitti,
     evaluate_predictions,
+    recorded_data_problem,
     recorded_protocol,
     recorded_protocol_name,
     render_evaluation_gallery,
@@ -240,6 +241,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
                     "drop --missing-ratio, or pass --ignore-recorded-protocol"
                 )
             ratio = made_ratio
+        _check_recorded_data(args)
     inputs = [args.data] if args.references is None else [args.data, args.references]
     for flag in ("json", "csv", "gallery"):
         if getattr(args, flag) is not None:
@@ -361,7 +363,18 @@ def _scoring_ratio(args: argparse.Namespace) -> float:
             f"{args.pred} was predicted with {made_ratio:g} missing ({record}), "
             f"not {ratio:g}; drop --missing-ratio, or pass --ignore-recorded-protocol"
         )
+    _check_recorded_data(args)
     return ratio
+
+
+def _check_recorded_data(args: argparse.Namespace) -> None:
+    """Refuse predictions recorded as made from other clouds than ``--data``'s split (the same
+    names over other clouds were scored silently), unless ``--ignore-recorded-protocol``."""
+    if args.ignore_recorded_protocol or not (Path(args.data) / f"{args.split}.npz").is_file():
+        return  # a data set without the split is named by the scoring itself
+    problem = recorded_data_problem(args.pred, args.data, args.split)
+    if problem is not None:
+        raise ConfigError(problem)
 
 
 def _write_reports(args: argparse.Namespace, evaluation: Any, write_csv: Any) -> None:

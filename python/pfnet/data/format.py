@@ -319,6 +319,15 @@ def split_categories(root: str | os.PathLike[str], split: str) -> list[str]:
     return load_split(root, split).categories
 
 
+def split_digest(root: str | os.PathLike[str], split: str) -> str:
+    """The SHA-256 of a split's file: what predictions are recorded as made from, so that they
+    are never scored against other clouds under the same names (about 2 s a GB)."""
+    import hashlib
+
+    with open(Path(root) / f"{split}.npz", "rb") as file:
+        return hashlib.file_digest(file, "sha256").hexdigest()
+
+
 def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     """Load one split of a dataset into memory.
 
