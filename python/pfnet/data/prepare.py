@@ -269,8 +269,6 @@ def _scan(fmt: str, source, count: int | None, strict: bool) -> Scan:
         return procedural.scan(DEFAULT_PROCEDURAL_COUNT if count is None else count)
     if count is not None:
         raise ConfigError(f"count applies only to the procedural format, not to {fmt}")
-    if source is None:
-        raise ConfigError(f"the {fmt} format needs a source path")
     path = Path(source)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
@@ -369,9 +367,10 @@ def prepare_dataset(
             f"format must be auto or one of {', '.join((*FORMATS, *BENCHMARK_FORMATS))}, "
             f"got {format!r}"
         )
-    fmt = format
-    if format == "auto" and source is not None and str(source) != "procedural":
-        fmt = detect_format(source)
+    procedural = source is None or str(source) == "procedural"
+    fmt = detect_format(source) if format == "auto" else format
+    if fmt != "procedural" and procedural:
+        raise ConfigError(f"the {fmt} format needs a source path")
     if fmt in BENCHMARK_FORMATS:
         if points is not None or pool is not None or count is not None:
             raise ConfigError(
@@ -403,10 +402,9 @@ def prepare_dataset(
             f"pool must be an integer above points ({points}) and at most {MAX_POOL}, got {pool!r}"
         )
     pool = 0 if pool is None else int(pool)
-    if source is not None and str(source) != "procedural":
+    if not procedural:
         refuse_overlap(out, [source], flag="data set folder")
     out_path = check_output(out, overwrite)
-    fmt = detect_format(source) if fmt == "auto" else fmt
     scan = _scan(fmt, source, count, strict)
     if strict and scan.skipped:
         path, reason = scan.skipped[0]
