@@ -48,13 +48,20 @@ def _workers(pid: int) -> list[int]:
     return [worker for server in fork_servers(pid) for worker in children(server)]
 
 
+def _working(pid: int) -> bool:
+    """Whether both workers have been sampling shapes for a second."""
+    if len(_workers(pid)) < 2:
+        return False
+    time.sleep(1.0)
+    return True
+
+
 MOMENTS = {
     # the fork server has been started and imports pfnet: the pool is starting
-    "pool-starting": lambda p: fork_servers(p.pid),
+    "pool-starting": lambda pid: bool(fork_servers(pid)),
     # the fork server has forked both workers
-    "workers-started": lambda p: len(_workers(p.pid)) >= 2,
-    # the workers have been sampling shapes for a while
-    "working": lambda p: len(_workers(p.pid)) >= 2 and time.sleep(1.0) is None,
+    "workers-started": lambda pid: len(_workers(pid)) >= 2,
+    "working": _working,
 }
 
 
@@ -63,7 +70,7 @@ def test_ctrl_c_during_prepare_exits_130_and_leaves_nothing(moment: str, tmp_pat
     out = tmp_path / "data"
     process = _start(out, *PREPARE)
     try:
-        wait_for(lambda: process.poll() is not None or MOMENTS[moment](process), timeout=60)
+        wait_for(lambda: process.poll() is not None or MOMENTS[moment](process.pid), timeout=60)
         assert process.poll() is None, process.communicate()[1][-3000:]
         os.killpg(process.pid, signal.SIGINT)
         _, stderr = process.communicate(timeout=60)  # a hang fails here
