@@ -49,6 +49,17 @@ def test_the_machine_s_limits_are_one_line(monkeypatch, capsys):
     assert capsys.readouterr().err == "pfnet models: interrupted\n"
 
 
+def test_ctrl_c_while_the_commands_load_is_one_line(monkeypatch, capsys):
+    import pfnet.cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pfnet.cli, "build_parser", interrupted)
+    assert main(["prepare", "procedural", "--out", "x"]) == 130
+    assert capsys.readouterr().err == "pfnet: interrupted\n"
+
+
 @pytest.mark.parametrize(
     "exc", [TypeError("bug"), ValueError("bug"), KeyError("bug"), AttributeError("bug")]
 )

@@ -8,6 +8,8 @@ import pytest
 
 from pfnet.cli import main
 from pfnet.data import load_split, read_manifest
+from pfnet.data.benchmarks import BENCHMARK_FORMATS
+from pfnet.data.sources import FORMATS
 
 
 def test_prepare_procedural(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -89,6 +91,21 @@ def test_prepare_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str], extr
 def test_prepare_missing_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["prepare", str(tmp_path / "nope"), "--out", str(tmp_path / "ds")]) == 1
     assert "nope: no such file or folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "fmt",
+    [f for f in (*FORMATS, *BENCHMARK_FORMATS) if f != "procedural"],
+)
+def test_every_format_but_procedural_needs_a_source_path(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fmt: str
+) -> None:
+    # the benchmark formats used to fail with a TypeError traceback
+    out = tmp_path / "pp" / "c"
+    assert main(["prepare", "procedural", "--out", str(out), "--format", fmt]) == 1
+    err = capsys.readouterr().err
+    assert err == f"pfnet prepare: error: the {fmt} format needs a source path\n"
+    assert not (tmp_path / "pp").exists()
 
 
 def test_prepare_names_overwrite_for_a_folder_that_is_not_empty(tmp_path: Path, capsys) -> None:

@@ -181,6 +181,27 @@ def test_runtime_choices_and_errors(exported, tmp_path, monkeypatch):
         load_generator(None)
 
 
+@pytest.mark.parametrize("options", [[], ["--no-check"]], ids=["checked", "no-check"])
+def test_export_refuses_a_model_that_predicts_nan(exported, tmp_path, capsys, options):
+    """Finite weights whose products overflow: complete and predict refuse the model, so
+    export does too, with the same message, before writing anything."""
+    checkpoint, _, _, _ = exported
+    state = torch.load(checkpoint, weights_only=True)
+    for value in state["model"].values():
+        if value.is_floating_point() and value.dim() >= 2:
+            value.fill_(3e37)
+    overflowing = tmp_path / "overflow.pt"
+    torch.save(state, overflowing)
+    out = tmp_path / "overflow.onnx"
+    assert main(["export", "--checkpoint", str(overflowing), "--out", str(out), *options]) == 1
+    err = capsys.readouterr().err
+    assert err == (
+        f"pfnet export: error: model {overflowing} predicted NaN or infinite coordinates; "
+        "it is not a working model (do its weights overflow?)\n"
+    )
+    assert list(tmp_path.iterdir()) == [overflowing]  # no .onnx, no temporary file
+
+
 def test_no_runtime_installed_is_one_line(tmp_path, monkeypatch, capsys):
     scan = tmp_path / "scan.xyz"
     np.savetxt(scan, _scan(100, seed=2))

@@ -12,14 +12,16 @@ import time
 from pathlib import Path
 
 import pytest
+from process_tree import fork_servers, wait_for
 
 torch = pytest.importorskip("torch")
 
 import pfnet.checkpoint  # noqa: E402
 from pfnet.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
+from pfnet.processes import spawn_shielded, start_helpers  # noqa: E402
 from pfnet.training import preset_config, train  # noqa: E402
 from pfnet.training.loop import Trainer  # noqa: E402
-from pfnet.training.signals import StopRequest, spawn_shielded, start_helpers  # noqa: E402
+from pfnet.training.signals import StopRequest  # noqa: E402
 from pfnet.training.step import TrainingStep  # noqa: E402
 
 # Ctrl-C as in a terminal, even when the test suite runs in the background (SIGINT ignored)
@@ -151,20 +153,8 @@ def test_a_stop_signal_while_the_helpers_start_reaches_the_training_process(
 
     monkeypatch.setattr(forkserver, "ensure_running", lambda: signal.raise_signal(signal.SIGINT))
     with StopRequest().installed() as stop:
-        start_helpers()
+        start_helpers(["pfnet.training.loop"])
         assert stop.requested
-
-
-def _has_fork_server(pid: int) -> bool:
-    """Whether process ``pid`` has started multiprocessing's fork server."""
-    path = Path(f"/proc/{pid}/task/{pid}/children")
-    for child in path.read_text().split() if path.exists() else []:
-        try:
-            if b"forkserver" in Path(f"/proc/{child}/cmdline").read_bytes():
-                return True
-        except OSError:  # gone meanwhile
-            continue
-    return False
 
 
 def _start_run(tiny_dataset: Path, run: Path, *extra: str) -> subprocess.Popen[str]:
@@ -175,14 +165,6 @@ def _start_run(tiny_dataset: Path, run: Path, *extra: str) -> subprocess.Popen[s
     return subprocess.Popen(
         command, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True
     )
-
-
-def _wait_for(condition, timeout: float = 120.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError("timed out")
-        time.sleep(0.02)
 
 
 @pytest.mark.slow
@@ -199,10 +181,10 @@ def test_a_signal_to_the_process_group_exits_130_without_traceback(
         if when == "workers-starting":
             # The fork server appears and spends seconds importing torch: the old moment of
             # a BrokenPipeError.
-            _wait_for(lambda: process.poll() is not None or _has_fork_server(process.pid))
+            wait_for(lambda: process.poll() is not None or fork_servers(process.pid))
         else:
-            _wait_for(lambda: process.poll() is not None or (run / "log.jsonl").exists())
-            _wait_for(lambda: len((run / "log.jsonl").read_text().splitlines()) >= 2)
+            wait_for(lambda: process.poll() is not None or (run / "log.jsonl").exists())
+            wait_for(lambda: len((run / "log.jsonl").read_text().splitlines()) >= 2)
         os.killpg(process.pid, signum)
         _, stderr = process.communicate(timeout=180)
     finally:

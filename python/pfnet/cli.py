@@ -81,8 +81,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         Exception: Anything but :data:`USER_ERRORS` and a missing PyTorch: a bug, shown
             with its traceback.
     """
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:  # while the command modules load
+        print("pfnet: interrupted", file=sys.stderr)
+        return 130
     try:
         return int(args._run(args) or 0)
     except KeyboardInterrupt:

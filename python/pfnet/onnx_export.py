@@ -169,7 +169,9 @@ def export_onnx(
 
     Raises:
         ConfigError: ``out`` is not a ``.onnx`` path, or the checkpoint is not found.
-        DataError: The exported graph disagrees with PyTorch beyond :data:`TOLERANCE`.
+        DataError: The model's own output is refused as ``complete`` and ``predict`` refuse
+            it (:func:`pfnet.inference.check_detail`: NaN, infinite or far-out points), or
+            the exported graph disagrees with PyTorch beyond :data:`TOLERANCE`.
     """
     import onnx
 
@@ -189,6 +191,8 @@ def export_onnx(
         config_dict, card = read_checkpoint(source)["config"], {}
     multi_resolution = model.multi_resolution
     n_input = int(model.n_points) - int(model.n_missing)
+    # a model that complete and predict refuse is not exported either
+    _torch_detail(model, example_input(n_input), source)
     graph_model = _generator_graph(model, multi_resolution, n_input)
     float16 = shrink_initializers(graph_model)
     metadata = {
@@ -208,7 +212,11 @@ def export_onnx(
     }
     onnx.helper.set_model_props(graph_model, metadata)
     graph_model.doc_string = f"PF-Net generator {metadata['model']} exported by pfnet"
-    max_diff = _compare_with_torch(graph_model, model, multi_resolution, n_input) if check else None
+    max_diff = (
+        _compare_with_torch(graph_model, model, multi_resolution, n_input, source)
+        if check
+        else None
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out) as tmp:
         onnx.save_model(graph_model, str(tmp))
@@ -221,8 +229,23 @@ def export_onnx(
     }
 
 
+def _torch_detail(model: Any, partial: np.ndarray, source: Path) -> np.ndarray:
+    """PyTorch's detail points for ``partial``, checked as ``complete`` and ``predict`` check
+    a model's output (:func:`pfnet.inference.check_detail`: refused with a DataError)."""
+    import torch
+
+    from pfnet.inference import check_detail
+    from pfnet.models.layers import multi_resolution_indices
+
+    index = multi_resolution_indices(partial) if model.multi_resolution else None
+    with torch.inference_mode():
+        index = None if index is None else torch.from_numpy(index)
+        detail = model(torch.from_numpy(partial), index).detail.numpy()
+    return check_detail(detail, len(partial), int(model.n_missing), source)
+
+
 def _compare_with_torch(
-    graph_model: Any, model: Any, multi_resolution: bool, n_input: int
+    graph_model: Any, model: Any, multi_resolution: bool, n_input: int, source: Path
 ) -> float | None:
     """Max abs difference of ONNX Runtime vs PyTorch on example clouds (None without ORT)."""
     import importlib.util
@@ -230,7 +253,6 @@ def _compare_with_torch(
     if importlib.util.find_spec("onnxruntime") is None:
         return None
     import onnxruntime as ort
-    import torch
 
     from pfnet.models.layers import multi_resolution_indices
 
@@ -246,13 +268,12 @@ def _compare_with_torch(
         if multi_resolution:
             feeds["scale_indices"] = multi_resolution_indices(partial)
         got = session.run(None, feeds)[0]
-        with torch.inference_mode():
-            index = torch.from_numpy(feeds["scale_indices"]) if multi_resolution else None
-            want = model(torch.from_numpy(partial), index).detail.numpy()
-        worst = max(worst, float(np.abs(got - want).max()))
-    if not worst <= TOLERANCE:
-        raise DataError(
-            f"ONNX Runtime's completion differs from PyTorch's by {worst:.3g} "
-            f"(tolerance {TOLERANCE:g}); the file was not written"
-        )
+        want = _torch_detail(model, partial, source)
+        difference = float(np.abs(got - want).max())
+        if not difference <= TOLERANCE:  # NaN included
+            raise DataError(
+                f"ONNX Runtime's completion differs from PyTorch's by {difference:.3g} "
+                f"(tolerance {TOLERANCE:g}); the file was not written"
+            )
+        worst = max(worst, difference)
     return worst

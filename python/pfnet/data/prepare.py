@@ -7,6 +7,7 @@ same source and seed give byte-identical arrays whatever the number of workers.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 import os
@@ -33,6 +34,7 @@ from pfnet.data.sources import FORMATS, Scan, ShapeItem, load_item
 from pfnet.data.splits import assign_splits
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import refuse_overlap
+from pfnet.processes import worker_pool
 
 __all__ = ["PrepareReport", "assign_splits", "detect_format", "prepare_dataset", "process_item"]
 
@@ -210,19 +212,15 @@ def _run(tasks: list, workers: int, progress: bool | None, stop_on_failure: bool
         # and more than twice the usable cores only wait for each other (40 workers on 320
         # tiny meshes took 27 s and 2.8 GB on 2 cores, 2 workers 3.3 s)
         workers = min(workers, max(1, len(tasks) // _MIN_ITEMS_PER_WORKER), 2 * _default_workers())
-        if workers <= 1 or len(tasks) < _MIN_ITEMS_PER_WORKER * 2:
-            outcomes = map(process_item, tasks)
-            pool = None
-        else:
-            import multiprocessing
-
-            # forkserver: fork() from a multi-threaded parent (torch, the Rust core's thread
-            # pool) can deadlock, and Python 3.12+ warns about it
-            methods = multiprocessing.get_all_start_methods()
-            context = multiprocessing.get_context("forkserver" if "forkserver" in methods else None)
-            pool = context.Pool(workers)
-            outcomes = pool.imap_unordered(process_item, tasks, chunksize=2)
-        try:
+        with contextlib.ExitStack() as stack:
+            if workers <= 1 or len(tasks) < _MIN_ITEMS_PER_WORKER * 2:
+                outcomes = map(process_item, tasks)
+            else:
+                # forkserver: fork() from a multi-threaded parent (torch, the Rust core's
+                # thread pool) can deadlock, and Python 3.12+ warns about it; the workers
+                # leave Ctrl-C to this process (pfnet.processes)
+                pool = stack.enter_context(worker_pool(workers, ["pfnet.data.prepare"]))
+                outcomes = pool.imap_unordered(process_item, tasks, chunksize=2)
             for outcome in outcomes:
                 results.append(outcome)
                 failures += outcome[1] is None
@@ -231,10 +229,6 @@ def _run(tasks: list, workers: int, progress: bool | None, stop_on_failure: bool
                     bar.set_postfix(failed=failures, refresh=False)
                     if stop_on_failure:
                         break
-        finally:
-            if pool is not None:
-                pool.terminate()
-                pool.join()
     return sorted(results, key=lambda r: r[0])
 
 
@@ -275,8 +269,6 @@ def _scan(fmt: str, source, count: int | None, strict: bool) -> Scan:
         return procedural.scan(DEFAULT_PROCEDURAL_COUNT if count is None else count)
     if count is not None:
         raise ConfigError(f"count applies only to the procedural format, not to {fmt}")
-    if source is None:
-        raise ConfigError(f"the {fmt} format needs a source path")
     path = Path(source)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
@@ -375,9 +367,10 @@ def prepare_dataset(
             f"format must be auto or one of {', '.join((*FORMATS, *BENCHMARK_FORMATS))}, "
             f"got {format!r}"
         )
-    fmt = format
-    if format == "auto" and source is not None and str(source) != "procedural":
-        fmt = detect_format(source)
+    procedural = source is None or str(source) == "procedural"
+    fmt = detect_format(source) if format == "auto" else format
+    if fmt != "procedural" and procedural:
+        raise ConfigError(f"the {fmt} format needs a source path")
     if fmt in BENCHMARK_FORMATS:
         if points is not None or pool is not None or count is not None:
             raise ConfigError(
@@ -409,10 +402,9 @@ def prepare_dataset(
             f"pool must be an integer above points ({points}) and at most {MAX_POOL}, got {pool!r}"
         )
     pool = 0 if pool is None else int(pool)
-    if source is not None and str(source) != "procedural":
+    if not procedural:
         refuse_overlap(out, [source], flag="data set folder")
     out_path = check_output(out, overwrite)
-    fmt = detect_format(source) if fmt == "auto" else fmt
     scan = _scan(fmt, source, count, strict)
     if strict and scan.skipped:
         path, reason = scan.skipped[0]

@@ -32,6 +32,7 @@ from pfnet.checkpoint import read_checkpoint
 from pfnet.data.augment import augmentation_for
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import atomic_path, refuse_overlap
+from pfnet.processes import ignore_stop_signals, start_helpers
 from pfnet.training import distributed
 from pfnet.training.batches import CompletionCollate, EpochBatches
 from pfnet.training.config import SaveSchedule, TrainConfig
@@ -40,7 +41,7 @@ from pfnet.training.resume import check_resumable, data_identity, resumed_config
 from pfnet.training.runlog import plot_curves, write_log
 from pfnet.training.saving import CheckpointWriter, cpu_snapshot
 from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
-from pfnet.training.signals import StopRequest, ignore_stop_signals, start_helpers
+from pfnet.training.signals import StopRequest
 from pfnet.training.step import TrainingStep
 
 LAST = "last.pt"
@@ -236,7 +237,7 @@ class Trainer:
                 num_workers=workers,
                 collate_fn=self.collate,
                 worker_init_fn=ignore_stop_signals if workers else None,
-                multiprocessing_context=start_helpers() if workers else None,
+                multiprocessing_context=start_helpers(["pfnet.training.loop"]) if workers else None,
                 persistent_workers=workers > 0,
                 pin_memory=self.device.type == "cuda",
             )

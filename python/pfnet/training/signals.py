@@ -1,80 +1,22 @@
 """Safe stopping: Ctrl-C / SIGTERM end a run with a saved state, never with a traceback.
 
-A terminal's Ctrl-C sends SIGINT to the whole process group: the training process, its
-data-loader workers, the fork server that starts them and multiprocessing's resource
-tracker. Only the training process may act on it (it finishes the batch, saves ``last.pt``
-and exits with 130); a helper that died of it would break the next batch fetch (the old
-``BrokenPipeError`` of a fork server killed while it imported torch). The helpers are
-therefore spawned with SIGINT and SIGTERM *blocked* in their signal mask: a mask set by
-``posix_spawn`` survives exec and fork, so the fork server and every worker it forks hold
-both signals from their first instruction (multiprocessing's own spawn clears the mask, so
-:func:`start_helpers` swaps in :func:`spawn_shielded` while it starts them). The training
-process never changes its own handlers for this: a signal sent at any moment, while the
-helpers start included, reaches it (ignoring them there for the spawn lost a Ctrl-C sent in
-those milliseconds).
+A terminal's Ctrl-C sends SIGINT to the whole process group. Only the training process acts on
+it (it finishes the batch, saves ``last.pt`` and exits with 130): its data-loader workers,
+their fork server and multiprocessing's resource tracker hold SIGINT and SIGTERM blocked from
+their first instruction (:mod:`pfnet.processes`). The training process never changes its own
+handlers for them: a signal sent at any moment, while the helpers start included, reaches it.
 """
 
 from __future__ import annotations
 
 import contextlib
-import multiprocessing
-import multiprocessing.context
-import os
 import signal
 import sys
 import threading
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator
 from typing import Any
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-def spawn_shielded(path: str, args: Sequence[str], passfds: Iterable[int]) -> int:
-    """``multiprocessing.util.spawnv_passfds`` with SIGINT and SIGTERM blocked in the child.
-
-    Starts ``path`` with ``args``, passing the descriptors ``passfds`` (and 0-2; Python
-    opens every other descriptor non-inheritable), and returns its pid.
-    """
-    fds = sorted({int(fd) for fd in passfds})
-    inheritable = [os.get_inheritable(fd) for fd in fds]
-    for fd in fds:
-        os.set_inheritable(fd, True)
-    try:
-        return os.posix_spawn(path, list(args), os.environ, setsigmask=STOP_SIGNALS)
-    finally:
-        for fd, flag in zip(fds, inheritable, strict=True):
-            os.set_inheritable(fd, flag)
-
-
-def start_helpers() -> multiprocessing.context.BaseContext:
-    """The multiprocessing context for data-loader workers, its helpers started shielded.
-
-    Workers come from a fork server that has imported pfnet but run nothing: a plain
-    ``fork`` of a process that runs CUDA or several threads copies their state without the
-    threads, and the fork server's forks are cheap. The fork server and the resource
-    tracker are spawned here by :func:`spawn_shielded` (see the module docstring).
-    """
-    from multiprocessing import forkserver, util
-
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["pfnet.training.loop"])
-    spawn = util.spawnv_passfds
-    util.spawnv_passfds = spawn_shielded
-    try:
-        forkserver.ensure_running()
-    finally:
-        util.spawnv_passfds = spawn
-    return context
-
-
-def ignore_stop_signals(_worker_id: int) -> None:
-    """``worker_init_fn``: a worker leaves stopping to the training process.
-
-    Already so when the fork server was started by :func:`start_helpers`; this covers a fork
-    server that someone else started first.
-    """
-    for signum in STOP_SIGNALS:
-        signal.signal(signum, signal.SIG_IGN)
+from pfnet.processes import STOP_SIGNALS
 
 
 class StopRequest:
