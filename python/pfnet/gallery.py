@@ -140,14 +140,16 @@ def render_benchmark_gallery(
     protocol: str,
     *,
     keys: list[str],
+    count: int,
     split: str,
     missing_ratio: float | None,
     nearest: dict[str, str] | None = None,
     references: Path | None = None,
     reference_category: str = "car",
 ) -> Path:
-    """Render the completions ``keys`` (``<category>/<stem>``) of a benchmark protocol
-    (``pcn``, ``shapenet55``, ``kitti``), one row each: the protocol's input (PCN's scan,
+    """Render ``count`` of the completions ``keys`` (``<category>/<stem>``; picked by
+    :func:`pick_benchmark_gallery`) of a benchmark protocol (``pcn``, ``shapenet55``,
+    ``kitti``), one row each: the protocol's input (PCN's scan,
     PoinTr's 2,048-point crop, the KITTI car in its object frame), the whole completion,
     and the ground truth (the complete cloud; for KITTI the reference car nearest the
     completion, ``nearest`` (key -> ``<split>/<name>`` of ``references``), when given).
@@ -162,6 +164,7 @@ def render_benchmark_gallery(
     from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
 
     chosen = get_protocol(protocol)
+    keys = pick_benchmark_gallery(keys, count, chosen.views)
     clouds = load_split(data_dir, split)
     index = {
         f"{c}/{n}": i for i, (c, n) in enumerate(zip(clouds.category, clouds.name, strict=True))

@@ -303,8 +303,7 @@ def _benchmark_gallery(
     """``--gallery`` of a benchmark protocol: scored completions, spread over the categories."""
     if args.gallery is None:
         return
-    from pfnet.gallery import pick_benchmark_gallery, render_benchmark_gallery
-    from pfnet.protocols import get_protocol
+    from pfnet.gallery import render_benchmark_gallery
 
     keys = [f"{c}/{n}" for c, n in zip(evaluation.categories, evaluation.names, strict=True)]
     nearest = evaluation.labels.get("nearest_reference") if evaluation.labels else None
@@ -313,7 +312,8 @@ def _benchmark_gallery(
         args.pred,
         args.data,
         protocol,
-        keys=pick_benchmark_gallery(keys, args.gallery_count, get_protocol(protocol).views),
+        keys=keys,
+        count=args.gallery_count,
         split=args.split,
         missing_ratio=ratio,
         nearest=None if nearest is None else dict(zip(keys, nearest, strict=True)),

@@ -141,15 +141,15 @@ def _run_benchmark(args: argparse.Namespace) -> int:
     more = " --references CARS" if name == "kitti" else ""
     if args.gallery is not None:
         from pfnet.evaluation import find_prediction_files
-        from pfnet.gallery import pick_benchmark_gallery, render_benchmark_gallery
+        from pfnet.gallery import render_benchmark_gallery
 
-        keys = sorted(find_prediction_files(args.out, quiet=True))
         path = render_benchmark_gallery(
             args.gallery,
             args.out,
             args.data,
             name,
-            keys=pick_benchmark_gallery(keys, args.gallery_count, get_protocol(name).views),
+            keys=sorted(find_prediction_files(args.out, quiet=True)),
+            count=args.gallery_count,
             split=args.split,
             missing_ratio=ratio,
         )
