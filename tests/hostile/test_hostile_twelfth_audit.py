@@ -4,6 +4,7 @@ link loops as paths (X1), ``$`` in names and titles (X2), an unbounded ``reprodu
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,8 @@ def test_pictures_replace_a_planted_link_never_write_through_it(
         "render.html": ["render", str(scan), "--html"],
         "gallery.png": ["evaluate", str(pred), "--data", str(tiny_dataset), "--gallery"],
     }
+    if importlib.util.find_spec("plotly") is None:  # the viewer's extra is not installed
+        del commands["render.html"]
     for name, command in commands.items():
         link = pictures / name
         link.symlink_to(victim)
