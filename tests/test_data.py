@@ -189,7 +189,8 @@ def test_cloud_set_helpers() -> None:
         ({"points": 8}, r"points must be an integer in \[16, 65536\]"),
         ({"points": 3_000_000}, r"points must be an integer in \[16, 65536\] \(the most a model"),
         ({"points": 100.0}, "points must be an integer"),
-        ({"seed": -1}, "seed must be a non-negative integer"),
+        ({"seed": -1}, r"seed must be an integer in \[0, 2\*\*63\), got -1"),
+        ({"seed": 10**23}, r"seed must be an integer in \[0, 2\*\*63\), got 1000"),
         ({"test_fraction": 1.0}, r"test_fraction must be in \[0, 1\)"),
         ({"val_fraction": float("nan")}, r"val_fraction must be in \[0, 1\)"),
         (

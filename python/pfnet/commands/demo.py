@@ -68,6 +68,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
     if not 1 <= args.gallery_count <= MAX_ROWS:  # before the demo's work, not after it
         raise ConfigError(f"--gallery-count must be in [1, {MAX_ROWS}], got {args.gallery_count}")
+    if args.procedural and args.source is not None:
+        raise ConfigError("--procedural and --source name two sources; give one of them")
+    if not 0 <= args.seed < 2**63:  # before the data set is prepared with it, not after
+        raise ConfigError(f"--seed must be an integer in [0, 2**63), got {str(args.seed)[:40]}")
     if args.source is not None and not args.source.exists():
         raise ConfigError(f"--source {args.source} does not exist")
     run_demo(

@@ -79,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
     # message, which says why: outputs apart from the inputs).
     if (args.out / "manifest.json").exists() and args.out.resolve() != args.data.resolve():
         raise ConfigError(f"--out {args.out} is a prepared data set; name another folder")
+    if (args.out / "last.pt").is_file() or (args.out / "best.pt").is_file():
+        raise ConfigError(f"--out {args.out} is a training run; name another folder")
     _check_gallery(args)
     if args.protocol != "pfnet":
         return _run_benchmark(args)

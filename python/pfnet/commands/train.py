@@ -125,6 +125,11 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         base = TrainConfig.from_dict(data, source=str(stored))
     elif args.config is not None:
         base = load_config(args.config, preset=args.preset)
+        if base.steps is not None and args.epochs is not None and args.steps is None:
+            raise ConfigError(
+                f"--epochs with a config file that sizes the run in steps ({args.config}); "
+                "give --steps instead, or remove steps from the file"
+            )
     else:
         base = preset_config(args.preset or "paper")
     return base.replace(**overrides)

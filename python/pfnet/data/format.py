@@ -117,6 +117,12 @@ def unsafe_component(text: str) -> str | None:
     return None
 
 
+def _folded(text: str) -> str:
+    """``text`` as case- and normalisation-insensitive file systems compare names (``é``
+    composed or not, ``Chair`` and ``chair``: one file)."""
+    return unicodedata.normalize("NFD", unicodedata.normalize("NFD", text).casefold())
+
+
 @dataclass(frozen=True)
 class CloudSet:
     """The shapes of one split.
@@ -152,17 +158,17 @@ class CloudSet:
                 problem = unsafe_component(str(value))
                 if problem:
                     raise DataError(f"{label} {str(value)!r} {problem}")
-        pairs = {(c.casefold(), n.casefold()) for c, n in zip(category.tolist(), name.tolist())}
-        if len(pairs) != len(name):  # equal, or equal on a case-insensitive file system
+        pairs = {(_folded(c), _folded(n)) for c, n in zip(category.tolist(), name.tolist())}
+        if len(pairs) != len(name):  # equal, or one file on a case-insensitive file system
             seen: dict[tuple[str, str], tuple[str, str]] = {}
             for pair in zip(category.tolist(), name.tolist(), strict=True):
-                key = (pair[0].casefold(), pair[1].casefold())
+                key = (_folded(pair[0]), _folded(pair[1]))
                 if key in seen:
                     if seen[key] == pair:
                         raise DataError(f"shape {pair[0]}/{pair[1]} appears twice in the split")
                     raise DataError(
-                        f"shapes {'/'.join(seen[key])} and {'/'.join(pair)} differ only in case: "
-                        "one file on a case-insensitive file system"
+                        f"shapes {'/'.join(seen[key])} and {'/'.join(pair)} differ only in case "
+                        "or Unicode normalisation: one file on macOS and Windows file systems"
                     )
                 seen[key] = pair
         finite = np.isfinite(points).all(axis=(1, 2))
@@ -173,11 +179,11 @@ class CloudSet:
             )
         folded: dict[str, str] = {}
         for cat in sorted(set(category.tolist())):
-            other = folded.setdefault(cat.casefold(), cat)
+            other = folded.setdefault(_folded(cat), cat)
             if other != cat:
                 raise DataError(
-                    f"categories {other} and {cat} differ only in case: one folder on a "
-                    "case-insensitive file system"
+                    f"categories {other} and {cat} differ only in case or Unicode "
+                    "normalisation: one folder on macOS and Windows file systems"
                 )
         extra = self.extra
         if extra is not None and (

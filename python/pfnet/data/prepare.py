@@ -244,8 +244,9 @@ def _check_arguments(
             f"points must be an integer in [{MIN_POINTS}, {MAX_POINTS}] (the most a model "
             f"takes), got {points!r}"
         )
-    if not _is_integer(seed) or seed < 0:
-        raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
+    if not _is_integer(seed) or not 0 <= seed < 2**63:  # as training's seeds: a data set's
+        # seed is the demo's and the study's training seed too
+        raise ConfigError(f"seed must be an integer in [0, 2**63), got {str(seed)[:40]}")
     for label, value in (("test_fraction", test_fraction), ("val_fraction", val_fraction)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
             raise ConfigError(f"{label} must be in [0, 1), got {value!r}")

@@ -213,10 +213,17 @@ def load_config(path: str | Path, *, preset: str | None = None) -> TrainConfig:
         raise ConfigError(f"config file {path} does not exist") from None
     except OSError as err:
         raise ConfigError(f"cannot read config file {path}: {err.strerror}") from None
-    except (tomllib.TOMLDecodeError, RecursionError) as err:  # RecursionError: forged nesting
+    except (tomllib.TOMLDecodeError, RecursionError, UnicodeDecodeError) as err:
+        # RecursionError: forged nesting; UnicodeDecodeError: not UTF-8 (UTF-16, binary)
         raise ConfigError(f"config file {path} is not valid TOML: {str(err)[:200]}") from None
     if set(data) == {"train"}:
         data = data["train"]
+        if not isinstance(data, dict):  # train = 5
+            raise ConfigError(f"config file {path}: [train] must be a table of keys")
+    if "steps" in data and "epochs" in data:
+        raise ConfigError(
+            f"config file {path}: epochs and steps size the run two ways; give one of them"
+        )
     base = preset_config(preset or data.get("preset", "paper"))
     merged = base.to_dict()
     if preset is not None:
