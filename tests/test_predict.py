@@ -13,7 +13,7 @@ from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.data import load_split, test_protocol_crop  # noqa: E402
 from pfnet.devices import inference_device  # noqa: E402
-from pfnet.errors import ConfigError  # noqa: E402
+from pfnet.errors import ConfigError, DataError  # noqa: E402
 from pfnet.inference import predict_split  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
@@ -147,3 +147,53 @@ def test_predict_errors(tmp_path, tiny_dataset, checkpoint, capsys, monkeypatch)
         inference_device("tpu")
     assert main([*base, "--checkpoint", str(path), "--device", "cuda:0"]) == 1
     assert "this machine has 0 CUDA device(s)" in capsys.readouterr().err
+
+
+def test_two_runs_into_one_folder_never_mix(tmp_path, tiny_dataset, checkpoint, capsys):
+    """Audit 13, C1: two predict runs into one folder at once both reported success over a
+    mix of their files. A run holds the folder (flock) from its first file to its record, and
+    one that finds a record written since it checked the folder writes nothing."""
+    import subprocess
+    import sys
+
+    from pfnet.inference import check_prediction_folder, open_prediction_folder, run_files
+
+    path, _, _ = checkpoint
+    out = tmp_path / "pred"
+    args = ["predict", "--checkpoint", str(path), "--data", str(tiny_dataset), "--out", str(out)]
+    assert main([*args, "--device", "cpu"]) == 0
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    holder = subprocess.Popen(  # another run, between its first file and its record
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDONLY); "
+            "fcntl.flock(fd, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline() == "held\n"
+        capsys.readouterr()
+        assert main([*args, "--device", "cpu"]) == 1
+        err = capsys.readouterr().err
+        assert f"another pfnet predict is writing into {out}; wait for it" in err
+    finally:
+        holder.kill()
+        holder.communicate()  # reaps it and closes its pipe
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
+    # a run that finished while this one predicted: its record is newer than the check
+    clouds = load_split(tiny_dataset, "test")
+    check_prediction_folder(out, tiny_dataset, "test", "test", False)
+    assert main([*args, "--device", "cpu"]) == 0  # the other run
+    with pytest.raises(DataError, match="another pfnet predict wrote into .* while this one ran"):
+        open_prediction_folder(
+            out,
+            run_files(clouds.category, clouds.name),
+            "test",
+            {"name": "test", "missing_ratio": 0.25},
+            data_dir=tiny_dataset,
+        )
+    assert main([*args, "--device", "cpu"]) == 0  # the folder is free again

@@ -109,6 +109,7 @@ def check_prediction_folder(
     """
     out = Path(out)
     record = out / _RECORD
+    _SEEN[out.resolve()] = _record_stamp(out)  # open_prediction_folder compares it
     if not out.is_dir() or (not record.exists() and not record.is_symlink()):
         return []  # new, or files of the user's: predictions are added beside them
     this = {"data": str(Path(data_dir).resolve()), "split": split, "protocol": protocol}
@@ -279,9 +280,13 @@ def open_prediction_folder(
     run's files beside its record, and the old record, which lists those left, stays until
     then.
 
+    ``out`` stays locked for this run until :func:`write_record`; another run holding it, or
+    having written a record since :func:`check_prediction_folder` saw the folder, is refused.
+
     Raises:
         DataError: A category folder is a link out of ``out``; a folder ``replaced`` holds a
-            file put there since it was checked.
+            file put there since it was checked; another predict run writes, or wrote, into
+            ``out``.
     """
     categories = list(files["names"])
     for category in categories:
@@ -295,6 +300,13 @@ def open_prediction_folder(
                 f"{folder} is a link out of the prediction folder {out}; remove it first"
             )
     out.mkdir(parents=True, exist_ok=True)
+    _lock(out)
+    if _record_stamp(out) != _SEEN.get(out.resolve(), _record_stamp(out)):
+        _unlock(out)
+        raise DataError(
+            f"another pfnet predict wrote into {out} while this one ran; this run wrote "
+            "nothing: run it again when the other has finished"
+        )
     for path in replaced:  # each file, then its folder, as check_prediction_folder found them
         if not _plain_folder(path):
             path.unlink(missing_ok=True)
@@ -319,6 +331,45 @@ def open_prediction_folder(
     _write_record(out, record, indent=None)
     for category in categories:
         (out / category).mkdir(exist_ok=True)
+
+
+# The record each prediction folder had when checked, and the folders this process writes
+# into, each locked (flock on the folder) from open_prediction_folder to write_record: two
+# predict runs into one folder once both reported success over a mix of their files.
+_SEEN: dict[Path, tuple[int, int] | None] = {}
+_LOCKS: dict[Path, int] = {}
+
+
+def _record_stamp(out: Path) -> tuple[int, int] | None:
+    """The inode and modification time of ``out``'s record (each write replaces the file)."""
+    try:
+        stat = (out / _RECORD).stat()
+    except OSError:
+        return None
+    return stat.st_ino, stat.st_mtime_ns
+
+
+def _lock(out: Path) -> None:
+    """Take the prediction folder ``out`` for this run, or refuse if another run has it."""
+    import fcntl
+
+    key = out.resolve()
+    _unlock(out)  # a run of this process that failed half-way
+    fd = os.open(key, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise DataError(
+            f"another pfnet predict is writing into {out}; wait for it, or name another folder"
+        ) from None
+    _LOCKS[key] = fd
+
+
+def _unlock(out: Path) -> None:
+    fd = _LOCKS.pop(out.resolve(), None)
+    if fd is not None:
+        os.close(fd)
 
 
 def _write_record(out: Path, info: dict[str, Any], indent: int | None) -> dict[str, Any]:
@@ -373,7 +424,10 @@ def write_record(
         "runtime": runtime,
         "files": files,
     }
-    return _write_record(out, info, indent=2)
+    try:
+        return _write_record(out, info, indent=2)
+    finally:
+        _unlock(out)
 
 
 def predict_missing(
