@@ -84,3 +84,26 @@ def test_names_equal_but_for_unicode_normalisation_are_refused() -> None:
         CloudSet(points, np.array(["chair", "chair"]), np.array(["\u00e9", "e\u0301"]))
     with pytest.raises(DataError, match="categories .* differ only in case or Unicode"):
         CloudSet(points, np.array(["caf\u00e9", "cafe\u0301"]), np.array(["a", "b"]))
+
+
+def test_npy_headers_are_parsed_one_thread_at_a_time(tmp_path: Path, monkeypatch) -> None:
+    """CPython 3.11's ast.literal_eval, which numpy parses .npy headers with, failed in two
+    threads at once ("AST constructor recursion depth mismatch") while evaluate read
+    predictions on its thread pool: the header reads hold one lock."""
+    from numpy.lib import format as npy_format
+
+    from pfnet.formats import npy
+    from pfnet.io import read_point_cloud
+
+    held = []
+    original = npy_format.read_array_header_1_0
+
+    def watched(fh, *args, **kwargs):
+        held.append(npy.HEADER_LOCK.locked())
+        return original(fh, *args, **kwargs)
+
+    monkeypatch.setattr(npy_format, "read_array_header_1_0", watched)
+    path = tmp_path / "cloud.npy"
+    np.save(path, np.ones((5, 3), np.float32))
+    assert read_point_cloud(path).shape == (5, 3)
+    assert held and all(held)

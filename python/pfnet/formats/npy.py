@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import tokenize
 from pathlib import Path
 
@@ -34,6 +35,12 @@ _HEADER_ERRORS = (
 MAX_HEADER_BYTES = 1 << 16
 
 
+# numpy parses a header with ast.literal_eval, which CPython 3.11 does not run safely in two
+# threads at once ("SystemError: AST constructor recursion depth mismatch", CPython
+# gh-106905): evaluate reads prediction files on a thread pool.
+HEADER_LOCK = threading.Lock()
+
+
 def check_npy_header(
     name: str, fh, available: int, *, max_chars: int | None = None
 ) -> tuple[tuple[int, ...], np.dtype]:
@@ -62,10 +69,11 @@ def check_npy_header(
                 f"{MAX_HEADER_BYTES} are read)"
             )
         fh.seek(start)
-        if version == (1, 0):
-            shape, _, dtype = npy_format.read_array_header_1_0(fh)
-        else:
-            shape, _, dtype = npy_format.read_array_header_2_0(fh)
+        with HEADER_LOCK:
+            if version == (1, 0):
+                shape, _, dtype = npy_format.read_array_header_1_0(fh)
+            else:
+                shape, _, dtype = npy_format.read_array_header_2_0(fh)
     except DataError:
         raise
     except _HEADER_ERRORS as err:
@@ -98,7 +106,8 @@ def read_npy(file: Path) -> np.ndarray:
     check_body_span(file, shape[0] * shape[1] * dtype.itemsize, f"the .npy rows {shape}")
     try:
         # mapped, so only the three coordinate columns are copied into memory
-        array = np.load(file, mmap_mode="r", allow_pickle=False)
+        with HEADER_LOCK:  # np.load parses the header again
+            array = np.load(file, mmap_mode="r", allow_pickle=False)
     except _HEADER_ERRORS as err:  # object arrays, bad headers, truncated data
         raise DataError(f"{file}: not a valid .npy array file ({err})") from None
     if not isinstance(array, np.ndarray):
