@@ -162,8 +162,8 @@ def complete_files(
     """Complete ``inputs`` batch by batch into ``out_dir`` (created if needed).
 
     A file that cannot be read, or whose points all coincide, is skipped (``on_skip`` is told
-    at once) and the rest are completed. A first batch interrupted or refused leaves no empty
-    folder.
+    at once) and the rest are completed. A first batch interrupted or refused, or inputs none
+    of which could be read, leave no empty folder.
     ``source`` (the checkpoint) is named if the model's output is refused.
 
     Returns:
@@ -179,11 +179,16 @@ def complete_files(
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
-        return _complete_batches(model, inputs, out_dir, batch_size, device, on_skip, source)
+        done, failed = _complete_batches(
+            model, inputs, out_dir, batch_size, device, on_skip, source
+        )
     except (KeyboardInterrupt, DataError):  # Ctrl-C, or a model whose output is refused
         if created and not any(out_dir.iterdir()):
             out_dir.rmdir()
         raise
+    if created and not done and not any(out_dir.iterdir()):  # no input could be read
+        out_dir.rmdir()
+    return done, failed
 
 
 def _complete_batches(model, inputs, out_dir, batch_size, device, on_skip, source):

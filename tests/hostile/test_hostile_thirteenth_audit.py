@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from brute import needs_runtime
 
 from pfnet.cli import main
 
@@ -107,3 +108,27 @@ def test_npy_headers_are_parsed_one_thread_at_a_time(tmp_path: Path, monkeypatch
     np.save(path, np.ones((5, 3), np.float32))
     assert read_point_cloud(path).shape == (5, 3)
     assert held and all(held)
+
+
+def test_reports_go_into_a_folder_not_yet_there(tmp_path: Path, tiny_dataset: Path) -> None:
+    """Audit 14 note: `evaluate --json` into a folder not yet there failed after the scoring
+    (galleries make theirs); and `complete` left an empty --out when none of its inputs could
+    be read (below)."""
+    from forge import write_predictions
+
+    pred = write_predictions(tmp_path / "pred", tiny_dataset)
+    reports = tmp_path / "reports" / "deeper"
+    args = ["evaluate", str(pred), "--data", str(tiny_dataset)]
+    assert main([*args, "--json", str(reports / "r.json"), "--csv", str(reports / "r.csv")]) == 0
+    assert sorted(p.name for p in reports.iterdir()) == ["r.csv", "r.json"]
+
+
+@needs_runtime
+def test_a_complete_that_read_nothing_leaves_no_folder(tmp_path: Path, capsys) -> None:
+    bad = tmp_path / "bad.xyz"
+    bad.write_text("not a point\n")
+    out = tmp_path / "completed"
+    assert main(["complete", str(bad), "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert "completed none of 1 file(s); nothing written" in captured.out
+    assert "bad.xyz" in captured.err and not out.exists()

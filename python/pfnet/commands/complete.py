@@ -50,10 +50,13 @@ def run(args: argparse.Namespace) -> int:
         on_skip=lambda err: print(f"skipped: {err}", file=sys.stderr),
         source=loaded.source,
     )
-    print(
-        f"completed {done} of {len(inputs)} file(s) into {args.out} "
-        f"(<stem>_missing.ply and <stem>_completed.ply)"
-    )
+    if done:
+        print(
+            f"completed {done} of {len(inputs)} file(s) into {args.out} "
+            f"(<stem>_missing.ply and <stem>_completed.ply)"
+        )
+    else:
+        print(f"completed none of {len(inputs)} file(s); nothing written")
     if failed:
         print(f"pfnet complete: {len(failed)} file(s) could not be read", file=sys.stderr)
         return 2

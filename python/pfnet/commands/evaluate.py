@@ -381,6 +381,9 @@ def _write_reports(args: argparse.Namespace, evaluation: Any, write_csv: Any) ->
     """``--json`` (the evaluation's report) and ``--csv`` (written by ``write_csv``)."""
     from pfnet.reports import write_json
 
+    for path in (args.json, args.csv):  # as galleries do: the scoring is not lost to a folder
+        if path is not None:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
     if args.json is not None:
         write_json(args.json, evaluation.report)
         print(f"wrote {args.json}")
