@@ -11,6 +11,7 @@ from pfnet import geometry  # noqa: E402
 from pfnet.losses import (  # noqa: E402
     alpha_for_epoch,
     chamfer_distance,
+    chamfer_loss,
     completion_loss,
     discriminator_loss,
     generator_adversarial_loss,
@@ -120,6 +121,50 @@ def test_completion_loss_weights_the_centre_terms_by_alpha_and_two_alpha() -> No
     )
     assert baseline_total.item() == pytest.approx(60.0)
     assert set(baseline_parts) == {"cd_detail"}
+
+
+def test_l1_chamfer_loss_is_the_mean_distance_of_a_float64_reference() -> None:
+    rng = np.random.default_rng(4)
+    pred = rng.random((3, 70, 3), dtype=np.float32)
+    gt = rng.random((3, 90, 3), dtype=np.float32)
+    d = np.sqrt(((pred[:, :, None, :].astype(np.float64) - gt[:, None, :, :]) ** 2).sum(-1))
+    expected = 7.0 * (d.min(2).mean(1) + d.min(1).mean(1)).mean()
+    loss = chamfer_loss(torch.from_numpy(pred), torch.from_numpy(gt), 7.0, chamfer="l1")
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
+    squared = chamfer_loss(torch.from_numpy(pred), torch.from_numpy(gt), 7.0)
+    naive = _naive_chamfer(pred, gt)
+    assert squared.item() == pytest.approx(7.0 * (naive[0] + naive[1]).mean(), rel=1e-5)
+
+
+def test_l1_chamfer_gradient_is_a_unit_pull_and_zero_on_the_surface() -> None:
+    # Point 0 lies 2 from the gt point along x, point 1 on it: |p - g| has gradient
+    # (p - g) / |p - g| away from 0 and none at 0 (no NaN from 0 / 0).
+    pred = torch.tensor([[[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]]], requires_grad=True)
+    gt = torch.tensor([[[0.0, 0.0, 0.0]]])
+    loss = chamfer_loss(pred, gt, 1.0, chamfer="l1")
+    assert loss.item() == pytest.approx((2.0 + 0.0) / 2 + 0.0)
+    loss.backward()
+    torch.testing.assert_close(pred.grad, torch.tensor([[[0.5, 0.0, 0.0], [0.0, 0.0, 0.0]]]))
+    rng = np.random.default_rng(5)
+    p64 = torch.from_numpy(rng.random((2, 9, 3))).requires_grad_()
+    g64 = torch.from_numpy(rng.random((2, 11, 3)))
+    assert torch.autograd.gradcheck(lambda p: chamfer_loss(p, g64, 3.0, chamfer="l1"), (p64,))
+
+
+def test_completion_loss_on_l1_logs_the_squared_chamfer_of_each_stage() -> None:
+    gt = torch.zeros(1, 4, 3)
+    detail = torch.ones(1, 4, 3)  # distance √3 both ways: L1 sum 2√3, L2 sum 6
+    primary = torch.full((1, 2, 3), 2.0)  # 2√3 and 12
+    completion = Completion(primary, None, detail)
+    total, parts = completion_loss(
+        completion, gt, None, gt[:, :2], alpha=0.1, scale=10.0, chamfer="l1"
+    )
+    root3 = 3.0**0.5
+    assert total.item() == pytest.approx(10.0 * 2 * root3 + 0.1 * 10.0 * 4 * root3)
+    assert parts["cd_detail"].item() == pytest.approx(60.0)
+    assert parts["cd_primary"].item() == pytest.approx(240.0)
+    with pytest.raises(ValueError, match="chamfer must be one of l2, l1; got 'l3'"):
+        completion_loss(completion, gt, None, gt[:, :2], alpha=0.1, scale=1.0, chamfer="l3")
 
 
 def test_adversarial_losses_are_bce_with_logits() -> None:

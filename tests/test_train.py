@@ -81,6 +81,28 @@ def test_every_model_trains_through_the_cli_and_reloads(
     assert len(rows) == 2 and all(map(torch.isfinite, map(torch.tensor, rows[1].values())))
 
 
+def test_the_l1_chamfer_loss_trains_logs_the_l2_measure_and_stays_in_its_run(
+    tiny_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["train", "--data", str(tiny_dataset), "--preset", "small", "--model"]
+    argv += ["mlp", "--epochs", "1", "--batch-size", "8", "--width", "0.125"]
+    for chamfer in ("l2", "l1"):
+        run = tmp_path / chamfer
+        assert main([*argv, "--out", str(run), "--chamfer", chamfer, "--device", "cpu"]) == 0
+        assert json.loads((run / "config.json").read_text())["chamfer"] == chamfer
+        row = _rows(run)[1]
+        # The MLP's loss is its one Chamfer term: the logged CD-L2 itself on l2, the mean
+        # distances on l1.
+        if chamfer == "l2":
+            assert row["loss_g"] == pytest.approx(row["cd_detail"])
+        else:
+            assert row["loss_g"] != pytest.approx(row["cd_detail"], rel=0.05)
+    capsys.readouterr()
+    resume = ["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "l1"), "--resume"]
+    assert main([*resume, "--chamfer", "l2", "--device", "cpu"]) == 1
+    assert "cannot change chamfer when resuming" in capsys.readouterr().err
+
+
 def _interrupt_at(monkeypatch: pytest.MonkeyPatch, call: int) -> None:
     """Deliver a real SIGINT during the ``call``-th training step."""
     original = TrainingStep.__call__

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pfnet.models.completion import Completion
+from pfnet.training.config import CHAMFER_KINDS
 
 DEFAULT_CHUNK_BYTES = 64 * 2**20
 
@@ -57,10 +58,10 @@ def nearest_neighbor_indices(
     return pred_to_gt, gt_to_pred
 
 
-def chamfer_distance(
+def nearest_squared_distances(
     pred: Tensor, gt: Tensor, *, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES
 ) -> tuple[Tensor, Tensor]:
-    """The two directed Chamfer terms of paper Eq. (1), differentiable, per cloud.
+    """Each point's squared distance to its nearest neighbour in the other cloud, differentiable.
 
     Nearest neighbours are found without gradient (:func:`nearest_neighbor_indices`); the
     squared distances to them are then recomputed exactly as ``|p - g|²``, so the values
@@ -74,8 +75,7 @@ def chamfer_distance(
         max_chunk_bytes: Memory budget of one block of the distance matrix.
 
     Returns:
-        ``(pred_to_gt (B,), gt_to_pred (B,))``: mean squared distance of each pred point to
-        its nearest gt point, and the reverse.
+        ``(B, P)`` squared distances of pred points to gt and ``(B, G)`` of gt points to pred.
 
     Raises:
         ValueError: Shapes that are not ``(B, *, 3)`` with equal B and at least one point.
@@ -96,15 +96,68 @@ def chamfer_distance(
         pred_index, gt_index = nearest_neighbor_indices(pred, gt, max_chunk_bytes=max_chunk_bytes)
         nearest_gt = torch.gather(gt, 1, pred_index.unsqueeze(-1).expand(-1, -1, 3))
         nearest_pred = torch.gather(pred, 1, gt_index.unsqueeze(-1).expand(-1, -1, 3))
-        pred_to_gt = (pred - nearest_gt).square().sum(-1).mean(1)
-        gt_to_pred = (gt - nearest_pred).square().sum(-1).mean(1)
-    return pred_to_gt, gt_to_pred
+        return (pred - nearest_gt).square().sum(-1), (gt - nearest_pred).square().sum(-1)
 
 
-def chamfer_loss(pred: Tensor, gt: Tensor, scale: float) -> Tensor:
-    """Batch mean of ``scale · (pred_to_gt + gt_to_pred)``, a scalar."""
-    pred_to_gt, gt_to_pred = chamfer_distance(pred, gt)
-    return scale * (pred_to_gt + gt_to_pred).mean()
+def chamfer_distance(
+    pred: Tensor, gt: Tensor, *, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES
+) -> tuple[Tensor, Tensor]:
+    """The two directed Chamfer terms of paper Eq. (1), differentiable, per cloud.
+
+    Args:
+        pred: ``(B, P, 3)`` float predicted clouds.
+        gt: ``(B, G, 3)`` float reference clouds (P and G may differ).
+        max_chunk_bytes: Memory budget of one block of the distance matrix.
+
+    Returns:
+        ``(pred_to_gt (B,), gt_to_pred (B,))``: mean squared distance of each pred point to
+        its nearest gt point, and the reverse (see :func:`nearest_squared_distances`).
+
+    Raises:
+        ValueError: Shapes that are not ``(B, *, 3)`` with equal B and at least one point.
+    """
+    to_gt, to_pred = nearest_squared_distances(pred, gt, max_chunk_bytes=max_chunk_bytes)
+    return to_gt.mean(1), to_pred.mean(1)
+
+
+def _distance(squared: Tensor) -> Tensor:
+    """``√squared``, with value and gradient 0 where ``squared`` is 0 (not 0 / 0 = NaN)."""
+    on_surface = squared == 0
+    return torch.where(on_surface, 0.0, torch.where(on_surface, 1.0, squared).sqrt())
+
+
+def _chamfer_terms(pred: Tensor, gt: Tensor, scale: float, chamfer: str) -> tuple[Tensor, Tensor]:
+    """``(loss, scale · CD-L2)`` of a batch from one neighbour search (see :func:`chamfer_loss`).
+
+    The second value is the paper's Chamfer whatever the loss, so that logs of runs trained
+    on either loss compare.
+    """
+    if chamfer not in CHAMFER_KINDS:
+        raise ValueError(f"chamfer must be one of {', '.join(CHAMFER_KINDS)}; got {chamfer!r}")
+    to_gt, to_pred = nearest_squared_distances(pred, gt)
+    squared = scale * (to_gt.mean(1) + to_pred.mean(1)).mean()
+    if chamfer == "l2":
+        return squared, squared
+    to_gt, to_pred = _distance(to_gt), _distance(to_pred)
+    return scale * (to_gt.mean(1) + to_pred.mean(1)).mean(), squared
+
+
+def chamfer_loss(pred: Tensor, gt: Tensor, scale: float, chamfer: str = "l2") -> Tensor:
+    """Batch mean of ``scale`` times the two directed Chamfer terms, a scalar.
+
+    Args:
+        pred: ``(B, P, 3)`` predicted clouds.
+        gt: ``(B, G, 3)`` reference clouds.
+        scale: Factor on the sum of both terms.
+        chamfer: ``"l2"`` (paper Eq. 1): the mean squared distances; ``"l1"``: the mean
+            distances (PoinTr's CD-L1 without its halving), which punishes a few far points
+            less and a cloud spread around the surface more.
+
+    Raises:
+        ValueError: An unknown ``chamfer``, or clouds :func:`nearest_squared_distances`
+            refuses.
+    """
+    return _chamfer_terms(pred, gt, scale, chamfer)[0]
 
 
 def alpha_for_epoch(epoch: int, schedule: Sequence[Sequence[float]]) -> float:
@@ -130,6 +183,7 @@ def completion_loss(
     *,
     alpha: float,
     scale: float,
+    chamfer: str = "l2",
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Multi-stage completion loss, paper Eq. (2).
 
@@ -145,21 +199,23 @@ def completion_loss(
         primary_target: ``(B, 64, 3)`` IFPS sample of ``missing``, or ``None``.
         alpha: The α of the schedule (:func:`alpha_for_epoch`).
         scale: Factor applied to every Chamfer term.
+        chamfer: ``"l2"`` (the paper's) or ``"l1"``: the kind of every Chamfer term of the
+            loss (:func:`chamfer_loss`).
 
     Returns:
         The scalar loss and its parts ``{"cd_detail", "cd_primary", "cd_secondary"}``
-        (detached, only the stages present).
+        (detached, only the stages present), each ``scale`` times the stage's CD-L2 whatever
+        ``chamfer`` is, so that runs on either loss log the same measure.
     """
-    cd_detail = chamfer_loss(completion.detail, missing, scale)
-    total = cd_detail
+    total, cd_detail = _chamfer_terms(completion.detail, missing, scale, chamfer)
     parts = {"cd_detail": cd_detail.detach()}
     if completion.primary is not None and primary_target is not None:
-        cd_primary = chamfer_loss(completion.primary, primary_target, scale)
-        total = total + alpha * cd_primary
+        loss, cd_primary = _chamfer_terms(completion.primary, primary_target, scale, chamfer)
+        total = total + alpha * loss
         parts["cd_primary"] = cd_primary.detach()
     if completion.secondary is not None and secondary_target is not None:
-        cd_secondary = chamfer_loss(completion.secondary, secondary_target, scale)
-        total = total + 2.0 * alpha * cd_secondary
+        loss, cd_secondary = _chamfer_terms(completion.secondary, secondary_target, scale, chamfer)
+        total = total + 2.0 * alpha * loss
         parts["cd_secondary"] = cd_secondary.detach()
     return total, parts
 

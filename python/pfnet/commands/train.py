@@ -14,6 +14,7 @@ from pathlib import Path
 from pfnet.errors import ConfigError, DataError
 from pfnet.models.registry import MODEL_NAMES
 from pfnet.training.config import (
+    CHAMFER_KINDS,
     PRECISIONS,
     PRESETS,
     TRAIN_CROPS,
@@ -67,6 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=tuple(PRESETS), help="base configuration (paper)")
     parser.add_argument("--config", type=Path, help="TOML file of config keys over the preset")
     parser.add_argument("--crop", choices=TRAIN_CROPS, help="training crop (default viewpoint)")
+    parser.add_argument(
+        "--chamfer",
+        choices=CHAMFER_KINDS,
+        help="Chamfer terms of the loss: l2, mean squared distances (the paper, default), "
+        "or l1, mean distances (sharper completions on small data sets; README)",
+    )
     for name, (kind, text) in OVERRIDES.items():
         flag = "--" + name.replace("_", "-")
         parser.add_argument(flag, type=kind, dest=name, metavar=name.upper(), help=text)
@@ -106,7 +113,7 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
     """
     if args.steps is not None and args.epochs is not None:
         raise ConfigError("--epochs and --steps size the run two ways; give one of them")
-    names = ("model", "crop", "precision", "compile", "augment_rotate", *OVERRIDES)
+    names = ("model", "crop", "chamfer", "precision", "compile", "augment_rotate", *OVERRIDES)
     overrides = {name: getattr(args, name) for name in names}
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if args.resume:

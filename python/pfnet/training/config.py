@@ -23,6 +23,8 @@ from pfnet.models.config import (
 )
 
 TRAIN_CROPS = ("viewpoint", "sphere", "multi")
+# The Chamfer terms of the loss: mean squared distances (the paper) or mean distances.
+CHAMFER_KINDS = ("l2", "l1")
 PRECISIONS = ("fp32", "bf16")
 # Fields that may change when a run is resumed; every other field must match the checkpoint.
 # (How a run executes may change; what it learns from may not.)
@@ -69,6 +71,9 @@ class TrainConfig(ModelConfig):
             epochs 30 and 80 of 200 are 0.15 and 0.4.
         adversarial_weight: λ_adv of Eq. (4); λ_com = 1 - λ_adv. Used by adversarial models.
         loss_scale: Factor on every Chamfer term of the loss (authors: 100·(d1+d2)/2 → 50).
+        chamfer: ``l2`` (paper Eq. 1, the default): the loss's Chamfer terms are mean squared
+            distances; ``l1``: mean distances (PoinTr's CD-L1), a deviation for small data
+            sets where the squared terms pull completions into compact blobs (README).
         crop: Training crop: ``viewpoint`` (one of the five), ``sphere`` or ``multi`` region.
         fresh_points: Draw every training cloud afresh from the data set's pool of points
             when it has one (``pfnet prepare --pool``), as the authors' loader does.
@@ -112,6 +117,7 @@ class TrainConfig(ModelConfig):
     )
     adversarial_weight: float = 0.05
     loss_scale: float = 50.0
+    chamfer: str = "l2"
     crop: str = "viewpoint"
     fresh_points: bool = True
     augment_rotate: bool = False
@@ -338,6 +344,7 @@ def _validate(c: TrainConfig) -> None:
         c.loss_scale,
         "a positive number",
     )
+    require(c.chamfer in CHAMFER_KINDS, "chamfer", c.chamfer, f"one of {', '.join(CHAMFER_KINDS)}")
     require(c.crop in TRAIN_CROPS, "crop", c.crop, f"one of {', '.join(TRAIN_CROPS)}")
     require(isinstance(c.fresh_points, bool), "fresh_points", c.fresh_points, "true or false")
     require(isinstance(c.augment_rotate, bool), "augment_rotate", c.augment_rotate, "true or false")

@@ -176,6 +176,7 @@ class TrainingStep:
             primary_target,
             alpha=alpha,
             scale=self.config.loss_scale,
+            chamfer=self.config.chamfer,
         )
         if self.d_forward is not None:
             with self.autocast():
