@@ -9,7 +9,8 @@
 # 8,192 pool points per access, all 820 catalogue models) share the GPU: A = N steps,
 # B = 2N steps (the twice-the-steps test), C = N steps at width 0.5 (the width lever). N comes
 # from a short calibration of the three running together, so that B ends inside the budget.
-# RUNS="NAME:STEPS:WIDTH:SEED ..." runs those instead, without the calibration. Every run's
+# RUNS="NAME:STEPS:WIDTH:SEED[:CHAMFER] ..." runs those instead, without the calibration
+# (CHAMFER: the loss's Chamfer, l2 or l1; default l2). Every run's
 # best.pt and last weights then predict the 8 categories' test split; $OUT gets one JSON
 # (configs, logs, test scores) and the generators of the runs in EXPORT (default "A B") as
 # float16 model files (9.7 MB each: the artefact that would ship, not a training checkpoint).
@@ -74,11 +75,11 @@ shutil.copy(src / "manifest.json", dst)
 z = np.load(src / "train16.npz")
 np.savez(dst / "train.npz", **{k: (z[k].astype(np.float32) if k == "extra" else z[k]) for k in z.files})
 PY
-train() {  # NAME STEPS WIDTH SECONDS-LEFT [SEED] [MODEL] [MISSING-RATIO]
+train() {  # NAME STEPS WIDTH SECONDS-LEFT [SEED] [MODEL] [MISSING-RATIO] [CHAMFER]
   timeout --signal=INT --kill-after=20 "$4" python3 -m pfnet.cli train --data "$work/train-data" \
     --val-data .gpu/val-data --out "$work/$1" --model "${6:-pfnet-vanilla}" --preset small \
     --steps "$2" --width "$3" --seed "${5:-0}" --workers "$workers" --device "$device" \
-    --missing-ratio "${7:-0.25}" > "$work/$1.log" 2>&1
+    --missing-ratio "${7:-0.25}" --chamfer "${8:-l2}" > "$work/$1.log" 2>&1
   echo "$1 exit $?" >> "$work/exits"
 }
 if [ "$mode" = study ]; then
@@ -145,11 +146,11 @@ PY
   ls -la "$out"; log "done"
   exit 0
 fi
-if [ -n "${RUNS:-}" ]; then  # RUNS="NAME:STEPS:WIDTH:SEED ...": these runs, no calibration
+if [ -n "${RUNS:-}" ]; then  # RUNS="NAME:STEPS:WIDTH:SEED[:CHAMFER] ...": no calibration
   left=$(( budget - ($(date +%s) - t0) - 40 ))
-  for spec in $RUNS; do IFS=: read -r name steps width seed <<< "$spec"
-    log "$name: $steps steps, width $width, seed $seed"
-    train "$name" "$steps" "$width" "$left" "$seed" &
+  for spec in $RUNS; do IFS=: read -r name steps width seed chamfer <<< "$spec"
+    log "$name: $steps steps, width $width, seed $seed, chamfer ${chamfer:-l2}"
+    train "$name" "$steps" "$width" "$left" "$seed" pfnet-vanilla 0.25 "${chamfer:-l2}" &
   done
   wait
 else

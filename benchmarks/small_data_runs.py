@@ -7,7 +7,9 @@ and, if scored, ``eval-test-best.json`` / ``eval-test-last.json`` (``pfnet evalu
 of ``best.pt``'s and the last weights' predictions of the test split). Training is the
 training Chamfer over the last tenth of the run (random crops; ``cd_detail`` is
 ``loss_scale`` · (Pred→GT + GT→Pred), so ×1000 / ``loss_scale`` gives CD-L2 ×1000);
-validation is the val split under the test protocol, mean of the last tenth and best.
+validation is the val split under the test protocol: CD-L2 ×1000 (mean of the last tenth,
+and best) and missing-region F-score@0.01 (mean of the last tenth). Training and
+validation are CD-L2 whatever loss (``chamfer``) the run trained on.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ def summarise(run: Path) -> dict:
         "val_last_tenth": sum(r["val_cd_l2"] for r in tail) / len(tail),
         "val_best": best["val_cd_l2"],
         "val_best_step": best["step"],
+        "val_f_last_tenth": sum(r["val_f_score"] for r in tail) / len(tail),
+        "loss": config.get("chamfer", "l2"),
         "curve": [
             (r["step"], r["cd_detail"] * 1000 / config["loss_scale"], r["val_cd_l2"]) for r in rows
         ],
@@ -48,12 +52,14 @@ def summarise(run: Path) -> dict:
 
 
 def table_row(s: dict) -> str:
-    """One markdown row: run, steps, training, val last tenth, val best, test CD-L2, F."""
+    """One markdown row: run, loss, steps, training, val (CD-L2 last tenth and best, F-score
+    last tenth), test CD-L2 and F-score."""
     test = " / ".join(f"{s[k]:.2f}" for k in ("test_best", "test_last") if k in s) or "—"
     f_score = " / ".join(f"{s[k]:.3f}" for k in ("f_best", "f_last") if k in s) or "—"
     return (
-        f"| {s['run']} | {s['steps']:,} | {s['train']:.2f} | {s['val_last_tenth']:.2f} | "
-        f"{s['val_best']:.2f} (step {s['val_best_step']:,}) | {test} | {f_score} |"
+        f"| {s['run']} | {s['loss']} | {s['steps']:,} | {s['train']:.2f} | "
+        f"{s['val_last_tenth']:.2f} | {s['val_best']:.2f} (step {s['val_best_step']:,}) | "
+        f"{s['val_f_last_tenth']:.3f} | {test} | {f_score} |"
     )
 
 
@@ -93,10 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     summaries = [summarise(run) for run in args.runs]
     print(
-        "| run | steps | training | val, last tenth | val, best "
+        "| run | loss | steps | training | val, last tenth | val, best | val F-score, last tenth "
         "| test CD-L2 (best / last) | test F-score (best / last) |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for s in summaries:
         print(table_row(s))
     if args.plot:

@@ -347,7 +347,7 @@ def test_reproduce_in_steps_side_by_side_on_other_training_data(tmp_path, tiny_d
     argv = ["reproduce", "--out", str(out), "--data", str(tiny_dataset), "--device", "cpu"]
     argv += ["--models", "pfnet-vanilla", "mlp", "--ratios", "0.25", "--width", "0.125"]
     argv += ["--batch-size", "8", "--gallery-count", "1", "--seeds", "0", "--steps", "6", "3"]
-    argv += ["--train-data", str(train_data), "--jobs", "2"]
+    argv += ["--chamfer", "l1", "--train-data", str(train_data), "--jobs", "2"]
     assert main(argv) == 0
     text = capfd.readouterr().out
     assert "mlp-25-6steps-seed0: training 6 steps on cpu" in text
@@ -358,11 +358,13 @@ def test_reproduce_in_steps_side_by_side_on_other_training_data(tmp_path, tiny_d
     assert results["train_dataset"]["splits"]["train"] == 24
     for run in results["runs"]:
         folder = out / "runs" / run["name"]
-        assert json.loads((folder / "config.json").read_text())["steps"] == run["steps"]
+        config = json.loads((folder / "config.json").read_text())
+        assert (config["steps"], config["chamfer"]) == (run["steps"], "l1")
         log = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
         assert log[-1]["step"] == run["steps"] and run["epochs"] == run["steps"] // 3
     report = (out / "results.md").read_text()
     assert report == render_report(results) and "the twice-the-steps test" in report
+    assert "loss on the Chamfer distances, not their squares (`--chamfer l1`)" in report
     assert (out / "gallery.png").read_bytes()[:4] == b"\x89PNG"
     # Again: everything is trained; the report alone is rebuilt from the record.
     assert main(argv) == 0

@@ -50,7 +50,7 @@ from pfnet.study.runs import (
     STUDY_RATIOS,
     STUDY_SEEDS,
 )
-from pfnet.training.config import MAX_STEPS
+from pfnet.training.config import CHAMFER_KINDS, MAX_STEPS
 
 # Trainings side by side on one device: a GPU's host has a few cores per run to give.
 MAX_JOBS = 64
@@ -115,6 +115,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--width", type=float, default=None, help="override the preset's")
     parser.add_argument("--batch-size", type=int, default=None, help="override the preset's")
+    parser.add_argument(
+        "--chamfer",
+        choices=CHAMFER_KINDS,
+        default=None,
+        help="Chamfer terms of every run's loss: l2 (the paper, default) or l1 (see pfnet train)",
+    )
     parser.add_argument(
         "--seeds",
         nargs="+",
@@ -213,7 +219,12 @@ def run(args: argparse.Namespace) -> int:
             data_seed=args.data_seed,
             models=list(dict.fromkeys(args.models)),
             ratios=list(dict.fromkeys(args.ratios)),
-            overrides={"epochs": args.epochs, "width": args.width, "batch_size": args.batch_size},
+            overrides={
+                "epochs": args.epochs,
+                "width": args.width,
+                "batch_size": args.batch_size,
+                "chamfer": args.chamfer,
+            },
             gallery_count=args.gallery_count,
             lengths=sorted(args.steps) if args.steps else None,
             train_data=args.train_data,

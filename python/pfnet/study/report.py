@@ -161,6 +161,8 @@ def render_report(results: dict[str, Any], assets: str = "") -> str:
             f"Adam lr {config['lr']}, StepLR {config['lr_step']}/{config['lr_gamma']}), "
             f"{config['epochs']} epochs, identical for every run"
         )
+    if config.get("chamfer", "l2") == "l1":
+        schedule += "; loss on the Chamfer distances, not their squares (`--chamfer l1`)"
     if "train_dataset" in results:
         train = results["train_dataset"]
         train_splits = ", ".join(f"{n} {s}" for s, n in train["splits"].items())
