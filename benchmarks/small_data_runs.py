@@ -74,7 +74,7 @@ def plot(summaries: list[dict], out: Path) -> None:
     fig, (train_ax, val_ax) = plt.subplots(1, 2, figsize=(10, 3.6))
     for s in summaries:
         steps, train, val = zip(*s["curve"])
-        label = f"{s['run']} (width {s['width']}, seed {s['seed']})"
+        label = f"{s['run']} ({s['loss']}, width {s['width']}, seed {s['seed']})"
         train_ax.plot(steps, train, lw=1, label=label)
         val_ax.plot(steps, val, lw=1, label=label)
     for ax, title, ylabel in (
