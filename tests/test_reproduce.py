@@ -10,6 +10,7 @@ import pytest
 from pfnet import study as reproduce
 from pfnet.cli import main
 from pfnet.errors import ConfigError
+from pfnet.processes import threads_per_process, usable_cpus
 from pfnet.study import (
     README_BEGIN,
     README_END,
@@ -351,7 +352,10 @@ def test_reproduce_in_steps_side_by_side_on_other_training_data(tmp_path, tiny_d
     assert main(argv) == 0
     text = capfd.readouterr().out
     assert "mlp-25-6steps-seed0: training 6 steps on cpu" in text
+    threads = threads_per_process(2)
+    assert f"2 runs at a time, {threads} torch thread(s) each" in text
     results = read_results(out / "results.json")
+    assert results["machine"]["torch_threads"] == threads
     names = ["pfnet-vanilla-25-3steps", "mlp-25-3steps", "pfnet-vanilla-25-6steps", "mlp-25-6steps"]
     assert [r["name"] for r in results["runs"]] == [f"{n}-seed0" for n in names]
     assert [s["steps"] for s in results["settings"]] == [3, 3, 6, 6]
@@ -391,6 +395,29 @@ def test_reproduce_in_steps_side_by_side_on_other_training_data(tmp_path, tiny_d
     assert "holds a run trained on another data set" in capfd.readouterr().err
     assert main([*rest, "--train-data", str(tmp_path / "sparse")]) == 1
     assert "holds clouds of 256 points, the study's data set" in capfd.readouterr().err
+
+
+def test_runs_side_by_side_share_the_cores_out(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert [threads_per_process(n, 2) for n in (1, 2, 3, 14)] == [2, 1, 1, 1]
+    assert [threads_per_process(n, 16) for n in (0, 1, 3, 14)] == [16, 16, 5, 1]
+    assert 1 <= threads_per_process(4) <= usable_cpus()
+    # The process of a run trains on the threads it is given.
+    torch = pytest.importorskip("torch")
+    from pfnet.study import orchestrate
+
+    seen = []
+
+    def train_run(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+
+    monkeypatch.setattr(orchestrate, "train_run", train_run)
+    before = torch.get_num_threads()
+    given = 1 if before != 1 else 2  # not what it has already
+    try:
+        orchestrate._train_in_process(None, None, Path("."), Path("."), "cpu", None, "", given)
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [given]
 
 
 def test_reproduce_length_and_job_options_are_checked(tmp_path, capsys):

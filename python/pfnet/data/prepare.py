@@ -34,7 +34,7 @@ from pfnet.data.sources import FORMATS, Scan, ShapeItem, load_item
 from pfnet.data.splits import assign_splits
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import refuse_overlap
-from pfnet.processes import worker_pool
+from pfnet.processes import usable_cpus, worker_pool
 
 __all__ = ["PrepareReport", "assign_splits", "detect_format", "prepare_dataset", "process_item"]
 
@@ -186,13 +186,6 @@ def process_item(
 MAX_WORKERS = 256
 
 
-def _default_workers() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not available on macOS
-        return os.cpu_count() or 1
-
-
 def _run(tasks: list, workers: int, progress: bool | None, stop_on_failure: bool) -> list:
     """Process the tasks, in a pool when worth it; results in task order."""
     from tqdm import tqdm
@@ -211,7 +204,7 @@ def _run(tasks: list, workers: int, progress: bool | None, stop_on_failure: bool
         # workers on 70 meshes took 37 s and 3 GB where 2 took 1.4 s)
         # and more than twice the usable cores only wait for each other (40 workers on 320
         # tiny meshes took 27 s and 2.8 GB on 2 cores, 2 workers 3.3 s)
-        workers = min(workers, max(1, len(tasks) // _MIN_ITEMS_PER_WORKER), 2 * _default_workers())
+        workers = min(workers, max(1, len(tasks) // _MIN_ITEMS_PER_WORKER), 2 * usable_cpus())
         with contextlib.ExitStack() as stack:
             if workers <= 1 or len(tasks) < _MIN_ITEMS_PER_WORKER * 2:
                 outcomes = map(process_item, tasks)
@@ -419,7 +412,7 @@ def prepare_dataset(
         else assign_splits(items, seed, test_fraction, val_fraction)
     )
     tasks = [(index, item, points, seed, pool) for index, item in enumerate(items)]
-    results = _run(tasks, workers or _default_workers(), progress, stop_on_failure=strict)
+    results = _run(tasks, workers or usable_cpus(), progress, stop_on_failure=strict)
     skipped = list(scan.skipped)
     kept: dict[str, list[tuple[ShapeItem, np.ndarray]]] = {split: [] for split in SPLITS}
     for index, cloud, reason in results:

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from pfnet.errors import DataError
+from pfnet.processes import threads_per_process
 from pfnet.study.aggregate import summarize_settings
 from pfnet.study.figures import plot_curves, render_comparison
 from pfnet.study.report import SOURCE_TITLES, render_report
@@ -112,7 +113,10 @@ def reproduce(
         "format": "pfnet-results",
         "version": 2,
         "created": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        "machine": _machine(device),
+        # side by side, each run had its share of the cores (train_side_by_side)
+        "machine": _machine(
+            device, threads_per_process(min(jobs, len(runs))) if jobs > 1 else None
+        ),
         "dataset": _dataset_summary(manifest),
         **({} if train_manifest is None else {"train_dataset": _dataset_summary(train_manifest)}),
         "preset": preset,
@@ -139,6 +143,10 @@ def train_side_by_side(
 ) -> None:
     """Train ``runs`` with up to ``jobs`` processes at a time (each :func:`train_run`).
 
+    The host's cores are shared out: each process gets ``cores // jobs`` torch threads (at
+    least one), not torch's default of one per core, which makes processes spin-wait on each
+    other's threads.
+
     Each process is a fresh interpreter (spawned), so CUDA and the data loaders' workers
     start cleanly in it. Ctrl-C reaches every process: each saves its ``last.pt`` and the
     next call resumes them. A run that fails stops the study once the others have finished,
@@ -147,6 +155,8 @@ def train_side_by_side(
     import multiprocessing
 
     context = multiprocessing.get_context("spawn")
+    threads = threads_per_process(min(jobs, len(runs)))
+    log(f"{min(jobs, len(runs))} runs at a time, {threads} torch thread(s) each")
     waiting = list(enumerate(runs, 1))
     running: list[tuple[str, Any]] = []
     failed = []
@@ -164,6 +174,7 @@ def train_side_by_side(
                         device,
                         train_data,
                         f"[{k}/{len(runs)}] ",
+                        threads,
                     ),
                     name=run.name,
                 )
@@ -200,11 +211,17 @@ def _train_in_process(
     device: str,
     train_data: Path | None,
     prefix: str,
+    threads: int,
 ) -> None:
-    """One run of :func:`train_side_by_side` in its own process; its exit code says how it went."""
+    """One run of :func:`train_side_by_side` in its own process, on ``threads`` torch threads
+    (:func:`pfnet.processes.threads_per_process`); its exit code says how it went."""
     import sys
 
+    import torch
+
     from pfnet.errors import PfnetError
+
+    torch.set_num_threads(threads)
 
     try:
         train_run(
@@ -224,7 +241,8 @@ def _train_in_process(
         sys.exit(1)
 
 
-def _machine(device: str) -> dict[str, Any]:
+def _machine(device: str, threads: int | None = None) -> dict[str, Any]:
+    """The machine of the study; ``threads``: each run's torch threads if not this process's."""
     import torch
 
     name = platform.processor() or platform.machine()
@@ -234,7 +252,7 @@ def _machine(device: str) -> dict[str, Any]:
         "device": device.split(":")[0],
         "name": name,
         "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
+        "torch_threads": threads or torch.get_num_threads(),
         "torch": torch.__version__.split("+")[0],
         "python": platform.python_version(),
     }
