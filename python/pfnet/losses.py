@@ -150,8 +150,8 @@ def chamfer_loss(pred: Tensor, gt: Tensor, scale: float, chamfer: str = "l2") ->
         gt: ``(B, G, 3)`` reference clouds.
         scale: Factor on the sum of both terms.
         chamfer: ``"l2"`` (paper Eq. 1): the mean squared distances; ``"l1"``: the mean
-            distances (PoinTr's CD-L1 without its halving), which punishes a few far points
-            less and a cloud spread around the surface more.
+            distances (PoinTr's CD-L1 without its halving), which charge far points less and
+            points near the surface more than the squares do.
 
     Raises:
         ValueError: An unknown ``chamfer``, or clouds :func:`nearest_squared_distances`

@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--chamfer",
         choices=CHAMFER_KINDS,
         help="Chamfer terms of the loss: l2, mean squared distances (the paper, default), "
-        "or l1, mean distances (sharper completions on small data sets; README)",
+        "or l1, mean distances (better on the small SweetHome3D data set; README)",
     )
     for name, (kind, text) in OVERRIDES.items():
         flag = "--" + name.replace("_", "-")
