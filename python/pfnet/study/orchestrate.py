@@ -91,8 +91,11 @@ def reproduce(
 
     records = []
     runs = study_runs(models, ratios, seeds, list(lengths) if lengths else [None])
+    run_threads = None  # each run's torch threads when they are not this process's
     if jobs > 1:
-        train_side_by_side(runs, base, data_dir, out / "runs", device, jobs, train_data, log)
+        run_threads = train_side_by_side(
+            runs, base, data_dir, out / "runs", device, jobs, train_data, log
+        )
     for k, run in enumerate(runs, 1):
         run_dir = out / "runs" / run.name
         prefix = f"[{k}/{len(runs)}] "
@@ -113,10 +116,7 @@ def reproduce(
         "format": "pfnet-results",
         "version": 2,
         "created": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        # side by side, each run had its share of the cores (train_side_by_side)
-        "machine": _machine(
-            device, threads_per_process(min(jobs, len(runs))) if jobs > 1 else None
-        ),
+        "machine": _machine(device, run_threads),
         "dataset": _dataset_summary(manifest),
         **({} if train_manifest is None else {"train_dataset": _dataset_summary(train_manifest)}),
         "preset": preset,
@@ -140,12 +140,12 @@ def train_side_by_side(
     jobs: int,
     train_data: Path | None,
     log: Callable[[str], None],
-) -> None:
+) -> int:
     """Train ``runs`` with up to ``jobs`` processes at a time (each :func:`train_run`).
 
     The host's cores are shared out: each process gets ``cores // jobs`` torch threads (at
     least one), not torch's default of one per core, which makes processes spin-wait on each
-    other's threads.
+    other's threads. Returns that number of threads.
 
     Each process is a fresh interpreter (spawned), so CUDA and the data loaders' workers
     start cleanly in it. Ctrl-C reaches every process: each saves its ``last.pt`` and the
@@ -201,6 +201,7 @@ def train_side_by_side(
             f"training failed for {', '.join(failed)} (exit codes above); the other runs are "
             "kept, and running the study again resumes where it stopped"
         )
+    return threads
 
 
 def _train_in_process(
