@@ -1,0 +1,58 @@
+"""benchmarks/study_run.py: single runs of the study by name, as ``pfnet reproduce`` trains them."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from pfnet.study.runs import StudyRun, run_config, study_config
+
+SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "study_run.py"
+
+
+@pytest.fixture(scope="module")
+def study_run():
+    spec = importlib.util.spec_from_file_location("study_run", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_run_names_are_parsed_back_to_the_study_runs(study_run):
+    assert study_run.parse_run("pfnet-50-10000steps-seed0") == StudyRun("pfnet", 0.5, 0, 10000)
+    assert study_run.parse_run("mr-cmlp-25-20000steps-seed3") == StudyRun(
+        "mr-cmlp", 0.25, 3, 20000
+    )
+    assert study_run.parse_run("pfnet-vanilla-75-8steps-seed1").model == "pfnet-vanilla"
+
+
+@pytest.mark.parametrize(
+    "name", ["pointnet-25-100steps-seed0", "pfnet-25-seed0", "pfnet-0-100steps-seed0", "mlp"]
+)
+def test_names_that_are_not_study_runs_are_refused_before_training(study_run, name, tmp_path):
+    with pytest.raises(SystemExit) as err:
+        study_run.main(["mlp-25-4steps-seed0", name, "--out", str(tmp_path), "--data", "x"])
+    assert f"{name!r} is not a study run name" in str(err.value)
+    assert not any(tmp_path.iterdir())  # the good name before it was not trained either
+
+
+def test_a_run_trains_with_the_study_config_scores_and_is_not_trained_twice(
+    study_run, tiny_dataset, tmp_path, capsys
+):
+    argv = ["mlp-25-4steps-seed0", "--out", str(tmp_path), "--data", str(tiny_dataset)]
+    assert study_run.main([*argv, "--threads", "1"]) == 0
+    run_dir = tmp_path / "mlp-25-4steps-seed0"
+    record = json.loads((run_dir / "record.json").read_text())
+    assert record["name"] == "mlp-25-4steps-seed0" and record["steps"] == 4
+    assert set(record["missing"]["categories"]) == {"chair", "lamp", "sofa", "table"}
+    stored = json.loads((run_dir / "config.json").read_text())
+    wanted = run_config(StudyRun("mlp", 0.25, 0, 4), study_config("small")).to_dict()
+    assert {k: v for k, v in stored.items() if k != "n_points"} == {
+        k: v for k, v in wanted.items() if k != "n_points"
+    }
+    assert "best val CD-L2" in capsys.readouterr().out
+    assert study_run.main(argv) == 0
+    assert "mlp-25-4steps-seed0: already trained (4 steps)" in capsys.readouterr().out
