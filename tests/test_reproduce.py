@@ -23,6 +23,7 @@ from pfnet.study import (
 )
 from pfnet.study.aggregate import reported_settings, twice_the_steps
 from pfnet.study.record import read_results
+from pfnet.study.runs import run_config, study_config
 
 ROOT = Path(__file__).resolve().parent.parent
 PUBLISHED = ROOT / "docs" / "results"
@@ -458,6 +459,37 @@ def test_readme_results_are_the_published_run():
         before = by_name[setting["name"].replace("10000steps", "5000steps")]
         a, b = before["best_val_cd_l2"], setting["best_val_cd_l2"]
         assert f"| {a:.3f} | {b:.3f} | {(a - b) / a:+.1%}: " in readme, setting["name"]
+
+
+@pytest.mark.skipif(not (PUBLISHED / "cpu-runs").is_dir(), reason="no runs of the CPU")
+def test_readme_twice_the_steps_rows_of_the_cpu_runs_are_their_files():
+    """The runs benchmarks/study_run.py trained on a CPU (docs/results/cpu-runs): each has
+    the study's configuration, its files agree with its record, and the README's row is its
+    validation gain over the run of half its length (published in either record or here)."""
+    records = {
+        run["name"]: run
+        for folder in (PUBLISHED, PUBLISHED / "longer-runs")
+        for run in read_results(folder / "results.json")["runs"]
+    }
+    cpu = sorted((PUBLISHED / "cpu-runs").iterdir())
+    assert cpu
+    for folder in cpu:
+        records[folder.name] = json.loads((folder / "record.json").read_text())
+    readme = (ROOT / "README.md").read_text()
+    base = study_config("small")
+    for folder in cpu:
+        run = records[folder.name]
+        assert run["name"] == folder.name
+        _check_published_run(folder, run)
+        config = json.loads((folder / "config.json").read_text())
+        study = StudyRun(run["model"], run["missing_ratio"], run["seed"], run["steps"])
+        wanted = run_config(study, base).to_dict()
+        assert {k: v for k, v in config.items() if k != "n_points"} == {
+            k: v for k, v in wanted.items() if k != "n_points"
+        }, folder.name
+        half = records[folder.name.replace(f"-{run['steps']}steps", f"-{run['steps'] // 2}steps")]
+        a, b = half["best_val_cd_l2"], run["best_val_cd_l2"]
+        assert f"| {a:.3f} | {b:.3f} | {(a - b) / a:+.1%}: " in readme, folder.name
 
 
 def _check_published_run(folder: Path, run: dict) -> None:
