@@ -23,9 +23,7 @@ def study_run():
 
 def test_run_names_are_parsed_back_to_the_study_runs(study_run):
     assert study_run.parse_run("pfnet-50-10000steps-seed0") == StudyRun("pfnet", 0.5, 0, 10000)
-    assert study_run.parse_run("mr-cmlp-25-20000steps-seed3") == StudyRun(
-        "mr-cmlp", 0.25, 3, 20000
-    )
+    assert study_run.parse_run("mr-cmlp-25-20000steps-seed3") == StudyRun("mr-cmlp", 0.25, 3, 20000)
     assert study_run.parse_run("pfnet-vanilla-75-8steps-seed1").model == "pfnet-vanilla"
 
 
