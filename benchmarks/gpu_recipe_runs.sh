@@ -23,6 +23,9 @@
 #     bash benchmarks/gpu_recipe_runs.sh study 555
 #     STEPS=10000 MODELS="pfnet-vanilla mr-cmlp cmlp mlp" RATIOS=0.25 JOBS=4 \
 #       bash benchmarks/gpu_recipe_runs.sh study 400
+# Single runs of the study by name (mode runs, below), e.g. the rest of item 7's test:
+#     STUDY_RUNS="mr-cmlp-25-20000steps-seed0 pfnet-50-20000steps-seed0" \
+#       bash benchmarks/gpu_recipe_runs.sh runs 500
 set -uo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 
@@ -53,8 +56,8 @@ PY
   exit 0
 fi
 
-[ "$1" = run ] || [ "$1" = study ] || {
-  echo "usage: $0 pack TRAIN VAL | run BUDGET_S | study BUDGET_S" >&2; exit 2; }
+[ "$1" = run ] || [ "$1" = study ] || [ "$1" = runs ] || {
+  echo "usage: $0 pack TRAIN VAL | run BUDGET_S | study BUDGET_S | runs BUDGET_S" >&2; exit 2; }
 mode=$1 t0=$(date +%s) budget=$2
 device=${DEVICE:-cuda} workers=${WORKERS:-4} cal_steps=${CAL_STEPS:-108} max_n=${MAX_N:-20000}
 out=${OUT:-/tmp/gpu-out}; mkdir -p "$out"
@@ -143,6 +146,28 @@ PY
   (cd "$work" && { [ -f pub/results.json ] && tar czf "$out/study.tgz" pub \
     || tar czf "$out/study.tgz" --ignore-failed-read study/runs/*/config.json \
       study/runs/*/log.jsonl cal*/log.jsonl; })
+  ls -la "$out"; log "done"
+  exit 0
+fi
+if [ "$mode" = runs ]; then
+  # Single runs of the study by name (benchmarks/study_run.py: the study's configuration),
+  # side by side, e.g. the runs its twice-the-steps test still lacks:
+  #     STUDY_RUNS="mr-cmlp-25-20000steps-seed0 pfnet-50-20000steps-seed0" \
+  #       bash benchmarks/gpu_recipe_runs.sh runs 500
+  # $OUT gets study-runs.tgz: each run's published files (docs/results/cpu-runs holds the
+  # CPU's), or whatever of them there is, and every run's output.
+  export OMP_NUM_THREADS=1
+  left=$(( budget - ($(date +%s) - t0) - 60 ))  # scoring and packing after the training
+  for name in ${STUDY_RUNS:?STUDY_RUNS names the runs}; do
+    log "$name"
+    timeout --signal=INT --kill-after=20 "$left" python3 benchmarks/study_run.py "$name" \
+      --out "$work/study-runs" --data .gpu/val-data --train-data "$work/train-data" \
+      --device "$device" --threads 1 > "$work/$name.log" 2>&1 &
+  done
+  wait
+  for name in $STUDY_RUNS; do grep -v "^epoch " "$work/$name.log" | tail -5; done
+  (cd "$work" && tar czf "$out/study-runs.tgz" --ignore-failed-read ./*.log \
+    study-runs/*/{config.json,log.jsonl,eval-missing.json,eval-whole.json,record.json})
   ls -la "$out"; log "done"
   exit 0
 fi
