@@ -64,7 +64,10 @@ out=${OUT:-/tmp/gpu-out}; mkdir -p "$out"
 work=$(mktemp -d)
 site=$(mktemp -d)
 python3 -m pip install -q --no-index --no-deps --no-compile --target "$site" .gpu/*.whl
-cp .gpu/_core.abi3.so python/pfnet/
+# Replaced by a rename, never written over in place: a process that has the library loaded
+# (a training run of this tree) would crash on the rewritten file.
+cp .gpu/_core.abi3.so python/pfnet/_core.abi3.so.new
+mv -f python/pfnet/_core.abi3.so.new python/pfnet/_core.abi3.so
 export PYTHONPATH=$here/python:$site
 log() { echo "[$(( $(date +%s) - t0 )) s] $*"; }
 nvidia-smi -L 2>/dev/null || true
