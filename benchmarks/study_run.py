@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from pfnet.models.registry import MODEL_NAMES
-from pfnet.study.runs import StudyRun, evaluate_run, study_config, train_run
+from pfnet.study.runs import STUDY_SCHEDULES, StudyRun, evaluate_run, study_config, train_run
 
 RUN_NAME = re.compile(
     r"(?P<model>[a-z-]+)-(?P<ratio>\d{1,2})-(?P<steps>\d+)steps-seed(?P<seed>\d+)"
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="folder of the run folders")
     parser.add_argument("--data", type=Path, required=True, help="the study's data set")
     parser.add_argument("--train-data", type=Path, help="train on this data set's train split")
-    parser.add_argument("--preset", default="small", choices=("small", "paper"))
+    parser.add_argument("--preset", default="small", choices=tuple(STUDY_SCHEDULES))
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     args = parser.parse_args(argv)
