@@ -118,10 +118,11 @@ def _interrupt_at(monkeypatch: pytest.MonkeyPatch, call: int) -> None:
 
 
 @pytest.mark.usefixtures("sigint_as_in_a_terminal")
+@pytest.mark.parametrize("ema", [0.0, 0.9])
 def test_ctrl_c_saves_and_resume_equals_an_uninterrupted_run(
-    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, ema: float
 ) -> None:
-    config = FAST.replace(epochs=2, batch_size=5, width=0.125)  # 5 steps per epoch
+    config = FAST.replace(epochs=2, batch_size=5, width=0.125, ema=ema)  # 5 steps per epoch
     whole = tmp_path / "whole"
     train(config, tiny_dataset, whole, device="cpu", progress=False)
 
@@ -140,9 +141,16 @@ def test_ctrl_c_saves_and_resume_equals_an_uninterrupted_run(
     assert _without_times(_rows(split)) == _without_times(_rows(whole))
     a = read_checkpoint(whole / "last.pt")
     b = read_checkpoint(split / "last.pt")
-    for key in ("model", "discriminator"):
-        for name, tensor in a[key].items():
-            assert torch.equal(tensor, b[key][name]), f"{key}.{name}"
+    assert (a["average"] is None) == (ema == 0)
+    assert ("val_live_cd_l2" in _rows(whole)[-1]) == (ema > 0)
+    models = {key: a[key] for key in ("model", "discriminator")}
+    if ema:
+        assert a["average"]["updates"] == b["average"]["updates"] == 10
+        models["average"] = a["average"]["model"]
+    for key, weights in models.items():
+        for name, tensor in weights.items():
+            expected = b["average"]["model"] if key == "average" else b[key]
+            assert torch.equal(tensor, expected[name]), f"{key}.{name}"
 
 
 def test_ctrl_c_through_the_cli_exits_130_and_resume_extends_the_run(
@@ -435,3 +443,43 @@ def test_init_from_fine_tunes_from_a_trained_generator(tiny_dataset: Path, tmp_p
     code = main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "cli"),
                  "--init-from", "no-such-model", "--epochs", "1"])  # fmt: skip
     assert code == 1
+
+
+def test_the_weight_average_is_what_validation_scores_and_best_pt_holds(
+    tiny_dataset: Path, tmp_path: Path
+) -> None:
+    config = FAST.replace(model="pfnet-vanilla", epochs=1, width=0.125, ema=0.99)
+    run = tmp_path / "ema"
+    train(config, tiny_dataset, run, device="cpu", progress=False)
+    state = read_checkpoint(run / "last.pt")
+    best = read_checkpoint(run / "best.pt")
+    assert state["average"]["updates"] == 6 and best["epoch"] == 1
+    live, average = state["model"], state["average"]["model"]
+    for name, tensor in best["model"].items():  # one epoch: best.pt is the end's average
+        assert torch.equal(tensor, average[name]), name
+    assert any(not torch.equal(live[k], average[k]) for k in live if k.endswith("weight"))
+    # The logged validation is the average's: score best.pt again, the same way.
+    from pfnet.training.loop import Trainer
+
+    rows = _rows(run)
+    # ... and the live weights are scored beside it, on the same trajectory
+    assert all("val_live_cd_l2" in row for row in rows)
+    assert rows[0]["val_live_cd_l2"] == rows[0]["val_cd_l2"]  # epoch 0: a copy of them
+    assert rows[-1]["val_live_cd_l2"] != rows[-1]["val_cd_l2"]
+    generator, _ = load_checkpoint(run / "best.pt")
+    trainer = Trainer(config, tiny_dataset, tmp_path / "scored", _cpu_context(), resume=False)
+    trainer.step.average.model.load_state_dict(generator.state_dict())
+    assert trainer.validate()["val_cd_l2"] == pytest.approx(rows[-1]["val_cd_l2"], rel=1e-6)
+    with pytest.raises(ConfigError, match=r"ema must be a number in \[0, 1\)"):
+        config.replace(ema=1.0)
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "cli"),
+                 "--ema", "0.9", "--steps", "2", "--batch-size", "4", "--width", "0.125",
+                 "--preset", "small", "--device", "cpu"])  # fmt: skip
+    assert code == 0
+    assert read_checkpoint(tmp_path / "cli" / "last.pt")["config"]["ema"] == 0.9
+
+
+def _cpu_context():
+    from pfnet.training import distributed
+
+    return distributed.setup("cpu")

@@ -42,6 +42,11 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "workers": (int, "data-loader worker processes, alive for the whole run"),
     "augment_scale": (float, "scale each axis of training clouds by U(1-s, 1+s) (default 0)"),
     "augment_jitter": (float, "std of Gaussian noise added to training clouds (default 0)"),
+    "ema": (
+        float,
+        "keep an exponential moving average of the generator's weights with this decay "
+        "(e.g. 0.999), which validation, best.pt and inference use (default 0: off)",
+    ),
     "save_every": (
         str,
         "write last.pt every this long (10min, 90s, 1h) or N epochs (default 10min)",

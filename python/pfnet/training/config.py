@@ -83,6 +83,9 @@ class TrainConfig(ModelConfig):
             ``[1 - s, 1 + s]`` (0: off).
         augment_jitter: Standard deviation of Gaussian noise added to training clouds
             (0: off).
+        ema: Decay of an exponential moving average of the generator's weights, updated
+            after every optimiser step (0: off, the paper). Validation, ``best.pt`` and
+            inference use the average (:class:`~pfnet.training.average.WeightAverage`).
         seed: Seed of initialisation, shuffling and crops.
         workers: Data-loader worker processes (kept alive for the whole run).
         precision: ``fp32`` (exact, the default) or ``bf16``: the networks run under
@@ -123,6 +126,7 @@ class TrainConfig(ModelConfig):
     augment_rotate: bool = False
     augment_scale: float = 0.0
     augment_jitter: float = 0.0
+    ema: float = 0.0
     seed: int = 0
     workers: int = 2
     precision: str = "fp32"
@@ -359,6 +363,12 @@ def _validate(c: TrainConfig) -> None:
         "augment_jitter",
         c.augment_jitter,
         "a number in [0, 0.1]",
+    )
+    require(
+        is_number(c.ema) and 0 <= c.ema < 1,
+        "ema",
+        c.ema,
+        "a number in [0, 1) (0: no average; e.g. 0.999)",
     )
     require(is_int(c.seed) and 0 <= c.seed < 2**63, "seed", c.seed, "an integer in [0, 2**63)")
     # each worker is a process holding a copy of the data set: 100,000 filled 24 GB in 10 s

@@ -2,8 +2,9 @@
 
 Per batch, adversarial models take one discriminator step then one generator step (as the
 authors' ``Train_PFNet.py``); the others take a generator step on the completion loss alone.
-After every epoch the generator is validated on the ``val`` split with the deterministic test
-protocol and the same metric functions as ``pfnet evaluate`` (:mod:`pfnet.metrics`).
+After every epoch the generator (its weight average, with ``ema``) is validated on the
+``val`` split with the deterministic test protocol and the same metric functions as
+``pfnet evaluate`` (:mod:`pfnet.metrics`).
 
 Files of a run folder (written by rank 0 only under DDP, each replaced atomically):
 ``log.jsonl`` after every epoch; ``best.pt`` (what inference needs) whenever validation
@@ -183,6 +184,7 @@ class Trainer:
         self.generator = self.step.generator
         if state is None and config.init_from is not None:
             start_from(self.generator, config)
+            self.step.restart_average()
         self.sampler = DistributedSampler(
             self.train_set,
             num_replicas=context.world_size,
@@ -308,7 +310,7 @@ class Trainer:
         return cpu_snapshot(
             {
                 "config": self.config.to_dict(),
-                "model": self.generator.state_dict(),
+                "model": self.step.scored.state_dict(),
                 "epoch": self.epoch,
                 "best_metric": self.best_metric,
                 "metrics": dict(row),
@@ -317,33 +319,42 @@ class Trainer:
 
     # -- validation ----------------------------------------------------------------------
 
-    @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """Metrics of the generator on the val split (test protocol), ``val_*`` keys, ×1000.
+        """Metrics on the val split (test protocol), ×1000: ``val_*`` of the scored generator.
 
+        With a weight average (``ema``) the scored generator is the average, and the live
+        weights are scored too, as ``val_live_*``: the two curves of one training trajectory.
         Empty when the val split is empty.
         """
+        metrics = self._score(self.step.scored, "val_")
+        if self.step.average is not None and metrics:
+            metrics.update(self._score(self.generator, "val_live_"))
+        return metrics
+
+    @torch.no_grad()
+    def _score(self, network: torch.nn.Module, prefix: str) -> dict[str, float]:
         from pfnet.metrics import sample_metrics, summarize
 
         ctx = self.context
-        self.generator.eval()
+        was_training = network.training
+        network.eval()
         rows: list[tuple[int, str, dict[str, float]]] = []
         for batch in self._validation_batches():
             partial = batch["partial"].to(self.device)
             with self.step.autocast():
-                detail = self.generator(partial, batch.get("scale_indices")).detail
+                detail = network(partial, batch.get("scale_indices")).detail
             metrics = sample_metrics(detail.float().cpu().numpy(), batch["missing"].numpy())
             for j, index in enumerate(batch["index"].tolist()):
                 values = {k: float(v[j]) for k, v in metrics.items()}
                 rows.append((index, batch["category"][j], values))
-        self.generator.train()
+        network.train(was_training)
         gathered = distributed.all_gather_objects(rows, ctx)
         rows = sorted((r for part in gathered for r in part), key=lambda r: r[0])
         if not rows:
             return {}
         per_sample = {k: np.array([r[2][k] for r in rows]) for k in rows[0][2]}
         summary = summarize(per_sample, [r[1] for r in rows])["mean"]
-        return {f"val_{k}": float(v) for k, v in summary.items() if k != "n"}
+        return {f"{prefix}{k}": float(v) for k, v in summary.items() if k != "n"}
 
     # -- the loop ------------------------------------------------------------------------
 

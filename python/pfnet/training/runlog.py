@@ -33,6 +33,7 @@ def plot_curves(path: Path, history: list[dict[str, Any]]) -> None:
         ("val_cd_l2", "CD-L2 (Pred→GT + GT→Pred)"),
         ("val_pred_to_gt", "Pred→GT"),
         ("val_gt_to_pred", "GT→Pred"),
+        ("val_live_cd_l2", "CD-L2 of the live weights (with ema)"),
     ):
         points = [(r["epoch"], r[key]) for r in history if key in r]
         if points:

@@ -17,6 +17,7 @@ from pfnet.losses import (
     joint_loss,
 )
 from pfnet.models import Discriminator, build_model, initialise
+from pfnet.training.average import WeightAverage
 from pfnet.training.config import TrainConfig
 from pfnet.training.distributed import DistContext
 from pfnet.training.schedule import make_scheduler
@@ -70,6 +71,17 @@ class TrainingStep:
         self.scheduler_g = make_scheduler(self.optimizer_g, config)
         self.optimizer_d = self._adam(self.discriminator) if self.discriminator else None
         self.scheduler_d = make_scheduler(self.optimizer_d, config) if self.optimizer_d else None
+        self.average = WeightAverage(self.generator, config.ema) if config.ema > 0 else None
+
+    @property
+    def scored(self) -> nn.Module:
+        """The generator that validation scores and ``best.pt`` holds: the average, if any."""
+        return self.average.model if self.average is not None else self.generator
+
+    def restart_average(self) -> None:
+        """Start the weight average again from the generator (after loading weights)."""
+        if self.average is not None:
+            self.average.reset(self.generator)
 
     def _adam(self, module: nn.Module) -> torch.optim.Adam:
         c = self.config
@@ -109,9 +121,10 @@ class TrainingStep:
             self.scheduler_d.step()
 
     def state_dict(self) -> dict[str, Any]:
-        """Models, optimisers and schedulers (``None`` where there is no discriminator)."""
+        """Models, optimisers, schedulers and the weight average (``None`` where absent)."""
         d, od, sd = self.discriminator, self.optimizer_d, self.scheduler_d
         return {
+            "average": self.average.state_dict() if self.average is not None else None,
             "model": self.generator.state_dict(),
             "discriminator": d.state_dict() if d is not None else None,
             "optimizer_g": self.optimizer_g.state_dict(),
@@ -125,6 +138,8 @@ class TrainingStep:
         self.generator.load_state_dict(state["model"])
         self.optimizer_g.load_state_dict(state["optimizer_g"])
         self.scheduler_g.load_state_dict(state["scheduler_g"])
+        if self.average is not None:
+            self.average.load_state_dict(state["average"])
         if self.discriminator is not None:
             self.discriminator.load_state_dict(state["discriminator"])
             self.optimizer_d.load_state_dict(state["optimizer_d"])
@@ -187,6 +202,8 @@ class TrainingStep:
             loss_g = loss_com
         loss_g.backward()
         self.optimizer_g.step()
+        if self.average is not None:
+            self.average.update(self.generator)
         losses["loss_g"] = float(loss_g.detach())
         losses.update({k: float(v) for k, v in parts.items()})
         return losses
