@@ -458,6 +458,10 @@ def test_the_weight_average_is_what_validation_scores_and_best_pt_holds(
     for name, tensor in best["model"].items():  # one epoch: best.pt is the end's average
         assert torch.equal(tensor, average[name]), name
     assert any(not torch.equal(live[k], average[k]) for k in live if k.endswith("weight"))
+    # Inference from last.pt gives the average too, not the live weights.
+    from_last, _ = load_checkpoint(run / "last.pt")
+    for name, tensor in from_last.state_dict().items():
+        assert torch.equal(tensor, average[name]), name
     # The logged validation is the average's: score best.pt again, the same way.
     from pfnet.training.loop import Trainer
 

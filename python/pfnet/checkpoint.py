@@ -142,6 +142,19 @@ def check_weights(path: Path, config: ModelConfig, weights: dict[str, Any]) -> N
         )
 
 
+def inference_weights(state: dict[str, Any]) -> Any:
+    """The generator weights a checkpoint's state offers for inference.
+
+    The weight average of a run trained with ``ema`` (its ``last.pt`` holds the live weights
+    too, for ``--resume``; its ``best.pt`` holds only the average, as ``model``), else
+    ``model``.
+    """
+    average = state.get("average")
+    if isinstance(average, dict) and "model" in average:
+        return average["model"]
+    return state["model"]
+
+
 def load_checkpoint(
     path: str | os.PathLike[str] | None, device: str | torch.device = "cpu"
 ) -> tuple[CompletionModel, ModelConfig]:
@@ -150,7 +163,8 @@ def load_checkpoint(
     Args:
         path: A ``last.pt`` or ``best.pt`` written by ``pfnet train``, a model file
             (``.safetensors``, :mod:`pfnet.shipped`), or the name of a shipped model;
-            ``None`` for the default shipped model.
+            ``None`` for the default shipped model. A run trained with ``ema`` gives its
+            weight average from either checkpoint (:func:`inference_weights`).
         device: Where to put the model.
 
     Returns:
@@ -171,7 +185,7 @@ def load_checkpoint(
         weights = load_weights(path, device="cpu")
     else:
         state = read_checkpoint(path, device)
-        config_dict, weights = state["config"], state["model"]
+        config_dict, weights = state["config"], inference_weights(state)
     config = ModelConfig.from_dict(config_dict, source=f"checkpoint {path}", extra="ignore")
     try:
         check_weights(path, config, weights)

@@ -144,7 +144,7 @@ def write_shipped(
     import torch
     from safetensors.torch import save_file
 
-    from pfnet.checkpoint import read_checkpoint
+    from pfnet.checkpoint import inference_weights, read_checkpoint
     from pfnet.io import atomic_path
 
     out = Path(out)
@@ -157,7 +157,7 @@ def write_shipped(
         state = read_checkpoint(checkpoint)
     tensors = {
         key: (value.half() if value.is_floating_point() else value).contiguous()
-        for key, value in state["model"].items()
+        for key, value in inference_weights(state).items()
         if isinstance(value, torch.Tensor)
     }
     metadata = {
