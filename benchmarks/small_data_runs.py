@@ -9,7 +9,9 @@ training Chamfer over the last tenth of the run (random crops; ``cd_detail`` is
 ``loss_scale`` · (Pred→GT + GT→Pred), so ×1000 / ``loss_scale`` gives CD-L2 ×1000);
 validation is the val split under the test protocol: CD-L2 ×1000 (mean of the last tenth,
 and best) and missing-region F-score@0.01 (mean of the last tenth). Training and
-validation are CD-L2 whatever loss (``chamfer``) the run trained on.
+validation are CD-L2 whatever loss (``chamfer``) the run trained on. A run trained with
+``--ema`` gets a second row, "(live weights)": the validation of the weights the optimiser
+trained (``val_live_*``) beside that of their average (``val_*``), one trajectory.
 """
 
 from __future__ import annotations
@@ -20,14 +22,19 @@ import sys
 from pathlib import Path
 
 
-def summarise(run: Path) -> dict:
-    """The figures of one run folder."""
+def summarise(run: Path, live: bool = False) -> dict:
+    """The figures of one run folder (``live``: of its live weights, with ``--ema``)."""
     config = json.loads((run / "config.json").read_text())
-    rows = [r for r in map(json.loads, (run / "log.jsonl").open()) if "step" in r]
+    lines = (run / "log.jsonl").read_text().splitlines()
+    rows = [r for r in map(json.loads, lines) if "step" in r]
+    if live:  # the live weights' validation under the names of the scored one's
+        rows = [
+            {**r, **{"val_" + k[9:]: v for k, v in r.items() if k[:9] == "val_live_"}} for r in rows
+        ]
     tail = rows[-max(1, len(rows) // 10) :]
     best = min(rows, key=lambda r: r["val_cd_l2"])
     summary = {
-        "run": run.name,
+        "run": run.name + (" (live weights)" if live else ""),
         "steps": rows[-1]["step"],
         "width": config["width"],
         "seed": config["seed"],
@@ -43,7 +50,7 @@ def summarise(run: Path) -> dict:
     }
     for which in ("best", "last"):
         path = run / f"eval-test-{which}.json"
-        if path.is_file():
+        if path.is_file() and not live:
             report = json.loads(path.read_text())
             mean = report["mean"]
             summary[f"test_{which}"] = mean["pred_to_gt"] + mean["gt_to_pred"]
@@ -97,7 +104,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("runs", type=Path, nargs="+", help="run folders")
     parser.add_argument("--plot", type=Path, help="write the curves to this PNG")
     args = parser.parse_args(argv)
-    summaries = [summarise(run) for run in args.runs]
+    summaries = []
+    for run in args.runs:
+        summaries.append(summarise(run))
+        if "val_live_cd_l2" in (run / "log.jsonl").read_text():
+            summaries.append(summarise(run, live=True))
     print(
         "| run | loss | steps | training | val, last tenth | val, best | val F-score, last tenth "
         "| test CD-L2 (best / last) | test F-score (best / last) |"

@@ -1,0 +1,56 @@
+"""benchmarks/small_data_runs.py: the rows of finished training runs."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "small_data_runs.py"
+
+
+@pytest.fixture(scope="module")
+def small_data_runs():
+    spec = importlib.util.spec_from_file_location("small_data_runs", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(folder: Path, rows: list[dict]) -> Path:
+    folder.mkdir()
+    config = {"width": 0.25, "seed": 0, "loss_scale": 50.0, "chamfer": "l1"}
+    (folder / "config.json").write_text(json.dumps(config))
+    (folder / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return folder
+
+
+def test_a_run_with_a_weight_average_gets_a_row_for_its_live_weights(
+    small_data_runs, tmp_path, capsys
+):
+    rows = [{"epoch": 0, "val_cd_l2": 99.0}]  # epoch 0 has no step: left out
+    for step, (average, live) in enumerate([(9.0, 12.0), (8.0, 7.0), (7.5, 9.0)], start=1):
+        validation = {"val_cd_l2": average, "val_f_score": 0.02}
+        validation |= {"val_live_cd_l2": live, "val_live_f_score": 0.01}
+        rows.append({"epoch": step, "step": step * 100, "cd_detail": 0.5, **validation})
+    ema = _run(tmp_path / "ema", rows)
+    plain = _run(
+        tmp_path / "plain", [{k: v for k, v in r.items() if "live" not in k} for r in rows]
+    )
+    (ema / "eval-test-best.json").write_text(
+        json.dumps({"mean": {"pred_to_gt": 4.0, "gt_to_pred": 3.5, "f_score": 0.03}})
+    )
+    scored, live = small_data_runs.summarise(ema), small_data_runs.summarise(ema, live=True)
+    assert (scored["val_best"], scored["val_best_step"]) == (7.5, 300)
+    assert (live["val_best"], live["val_best_step"]) == (7.0, 200)
+    assert live["val_f_last_tenth"] == 0.01 and scored["val_f_last_tenth"] == 0.02
+    assert scored["test_best"] == 7.5 and "test_best" not in live  # the test scored the average
+    assert small_data_runs.main([str(ema), str(plain)]) == 0
+    out = capsys.readouterr().out
+    assert "| ema | l1 | 300 | 10.00 | 7.50 | 7.50 (step 300) | 0.020 | 7.50 | 0.030 |" in out
+    assert (
+        "| ema (live weights) | l1 | 300 | 10.00 | 9.00 | 7.00 (step 200) | 0.010 | — | — |" in out
+    )
+    assert "plain (live weights)" not in out
