@@ -311,7 +311,11 @@ def test_reproduce_end_to_end_resumes_publishes_and_fills_the_readme(
     assert report == render_report(results)
     assert "| **mean** |" in report and "PF-Net at 25 / 50 / 75 % missing" in report
 
-    # Longer schedule: finished runs resume; a third call finds everything trained.
+    # Longer schedule: finished runs resume (one written before a configuration key existed,
+    # which takes its default); a third call finds everything trained.
+    stored = out / "runs" / "pfnet-25-seed1" / "config.json"
+    older = {k: v for k, v in json.loads(stored.read_text()).items() if k != "ema"}
+    stored.write_text(json.dumps(older))
     assert main([*argv, "--epochs", "3"]) == 0
     assert "pfnet-25-seed1: resuming at epoch 3 of 3" in capsys.readouterr().out
     assert main([*argv, "--epochs", "3", "--publish", str(pub), "--readme", str(readme)]) == 0

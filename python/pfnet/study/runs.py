@@ -203,7 +203,7 @@ def train_run(
     ``data_dir``'s val split (as ``pfnet train --val-data``).
     """
     from pfnet.training import train
-    from pfnet.training.config import RESUMABLE_FIELDS
+    from pfnet.training.config import RESUMABLE_FIELDS, TrainConfig
 
     config = run_config(run, base)
     sources = {} if train_data is None else {"val_data": data_dir}
@@ -217,7 +217,10 @@ def train_run(
                 raise ValueError("not a JSON object")
         except (OSError, ValueError, RecursionError) as err:
             raise DataError(f"{run_dir / 'config.json'} is unreadable: {str(err)[:200]}") from None
-        # Only the length of the run may change (n_points is filled in from the data).
+        # Only the length of the run may change (n_points is filled in from the data). Read
+        # through TrainConfig: a key added since the run started takes its default, which
+        # is what the run trains with.
+        stored = TrainConfig.from_dict(stored, source=str(run_dir / "config.json")).to_dict()
         free = (*RESUMABLE_FIELDS, "n_points")
         wanted = {k: v for k, v in config.to_dict().items() if k not in free}
         if {k: v for k, v in stored.items() if k not in free} != wanted:
