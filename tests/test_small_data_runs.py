@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
-
-SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "small_data_runs.py"
+from scripts import load_script
 
 
 @pytest.fixture(scope="module")
 def small_data_runs():
-    spec = importlib.util.spec_from_file_location("small_data_runs", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("small_data_runs")
 
 
 def _run(folder: Path, rows: list[dict]) -> Path:

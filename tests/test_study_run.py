@@ -2,23 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from scripts import load_script
 
 from pfnet.study.runs import StudyRun, run_config, study_config
-
-SCRIPT = Path(__file__).resolve().parent.parent / "benchmarks" / "study_run.py"
 
 
 @pytest.fixture(scope="module")
 def study_run():
-    spec = importlib.util.spec_from_file_location("study_run", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("study_run")
 
 
 def test_run_names_are_parsed_back_to_the_study_runs(study_run):
