@@ -153,6 +153,7 @@ def test_ctrl_c_saves_and_resume_equals_an_uninterrupted_run(
             assert torch.equal(tensor, expected[name]), f"{key}.{name}"
 
 
+@pytest.mark.usefixtures("sigint_as_in_a_terminal")
 def test_ctrl_c_through_the_cli_exits_130_and_resume_extends_the_run(
     tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
