@@ -62,3 +62,68 @@ def test_two_cpu_processes_train_with_ddp(tiny_dataset: Path, tmp_path: Path) ->
     assert done.returncode == 0, done.stderr[-3000:]
     rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in rows] == [0, 1, 2, 3]
+
+
+class _RecordingDist:
+    """Stands in for ``torch.distributed`` in the teardown tests: records the calls."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def is_initialized(self) -> bool:
+        return True
+
+    def barrier(self) -> None:
+        self.calls.append("barrier")
+
+    def destroy_process_group(self) -> None:
+        self.calls.append("destroy")
+
+
+@pytest.mark.parametrize(
+    ("finished", "calls"), [(True, ["barrier", "destroy"]), (False, ["destroy"])]
+)
+def test_teardown_waits_for_every_rank_only_after_a_finished_run(
+    monkeypatch: pytest.MonkeyPatch, finished: bool, calls: list[str]
+) -> None:
+    from pfnet.training import distributed
+
+    fake = _RecordingDist()
+    monkeypatch.setattr(distributed, "dist", fake)
+    context = distributed.DistContext(1, 2, 1, torch.device("cpu"))
+    distributed.teardown(context, finished=finished)
+    assert fake.calls == calls
+    # A single process has no group to leave.
+    fake.calls.clear()
+    distributed.teardown(distributed.DistContext(0, 1, 0, torch.device("cpu")))
+    assert fake.calls == []
+
+
+@pytest.mark.parametrize("fails", [False, True])
+def test_train_tells_teardown_whether_the_run_finished(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, fails: bool
+) -> None:
+    from pfnet.training import distributed, loop
+
+    seen: list[bool] = []
+
+    class _Trainer:
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            pass
+
+        def run(self, progress: bool = False) -> dict[str, object]:
+            if fails:
+                raise RuntimeError("rank-local failure")
+            return {"epochs": 1}
+
+    monkeypatch.setattr(loop, "Trainer", _Trainer)
+    monkeypatch.setattr(distributed, "teardown", lambda ctx, *, finished: seen.append(finished))
+    config = loop.TrainConfig()
+    if fails:
+        with pytest.raises(RuntimeError, match="rank-local failure"):
+            loop.train(config, tmp_path / "data", tmp_path / "run", device="cpu")
+    else:
+        assert loop.train(config, tmp_path / "data", tmp_path / "run", device="cpu") == {
+            "epochs": 1
+        }
+    assert seen == [not fails]

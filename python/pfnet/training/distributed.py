@@ -107,9 +107,20 @@ def setup(device: str | torch.device = "auto") -> DistContext:
     return DistContext(rank, world_size, local_rank, resolved)
 
 
-def teardown(context: DistContext) -> None:
-    """Leave the process group joined by :func:`setup`."""
+def teardown(context: DistContext, *, finished: bool = True) -> None:
+    """Leave the process group joined by :func:`setup`.
+
+    ``destroy_process_group`` is meant to be called by all ranks together. After a run that
+    ``finished`` (returned normally on this rank) every rank first waits at a barrier: rank
+    0 still writes the last checkpoint, log and plot while the others are done, and a rank
+    that tore down gloo and exited meanwhile was seen to abort (SIGABRT, "terminate called
+    without an active exception") on a loaded machine. After an error on this rank there is
+    no barrier: the other ranks may be waiting in a different collective and would never
+    reach it; torchrun ends them once this process exits non-zero.
+    """
     if context.distributed and dist.is_initialized():
+        if finished:
+            dist.barrier()
         dist.destroy_process_group()
 
 

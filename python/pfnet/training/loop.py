@@ -95,15 +95,18 @@ def train(
     inputs = [data_dir, *([val_data] if val_data else []), *init]
     refuse_overlap(out_dir, inputs, flag="run folder")
     context = distributed.setup(device)
+    finished = False
     try:
         val_dir = None if val_data is None else Path(val_data)
         trainer = Trainer(
             config, Path(data_dir), Path(out_dir), context, resume=resume, val_dir=val_dir
         )
         show = sys.stderr.isatty() if progress is None else progress
-        return trainer.run(progress=show and context.is_main)
+        summary = trainer.run(progress=show and context.is_main)
+        finished = True
+        return summary
     finally:
-        distributed.teardown(context)
+        distributed.teardown(context, finished=finished)
 
 
 class Trainer:
