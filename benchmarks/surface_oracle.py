@@ -51,7 +51,8 @@ def oracle_scores(
         ``{"samples": int, "shapes": int, "oracle": scores, "floor": scores}``, each
         ``scores`` being ``{"categories": {cat: metrics}, "mean": metrics}`` with ``pfnet
         evaluate``'s metric names (Chamfer ×1000). ``oracle``: the fresh samples' missing
-        regions; ``floor``: the partial input's own points nearest the viewpoint, what a
+        regions; ``floor``: the partial input's own ``m`` points nearest the viewpoint (all of
+        them when it has no more), what a
         completion that learned nothing could return.
 
     Raises:
@@ -84,7 +85,11 @@ def oracle_scores(
         for k in range(samples):
             cloud = clouds.extra[i, k * n_points : (k + 1) * n_points]
             fresh.append(crop_by_viewpoint(cloud, viewpoints[i], n_missing=m)[1])
-        nearest.append(crop_by_viewpoint(partial[i], viewpoints[i], n_missing=m)[1])
+        # the partial keeps n - m points: all of them when that is not more than m
+        kept = partial[i]
+        nearest.append(
+            kept if m >= len(kept) else crop_by_viewpoint(kept, viewpoints[i], n_missing=m)[1]
+        )
     oracle = _summary(fresh, np.repeat(removed, samples, axis=0), categories, samples, threshold)
     floor = _summary(nearest, removed, categories, 1, threshold)
     return {"samples": samples, "shapes": len(clouds), "oracle": oracle, "floor": floor}

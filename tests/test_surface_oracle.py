@@ -106,3 +106,19 @@ def test_a_data_set_without_a_pool_or_from_point_files_is_refused(
         surface_oracle.main(["--data", str(prepared)])
     with pytest.raises(SystemExit, match=r"^error: missing_ratio must be in \(0, 1\), got 1.5$"):
         surface_oracle.main(["--data", str(pooled), "--missing-ratio", "1.5"])
+
+
+def test_at_high_ratios_the_floor_is_the_whole_partial_input(surface_oracle, pooled):
+    scores = surface_oracle.oracle_scores(pooled, "test", 0.75, 1, 0.05)  # keeps 64 of 256
+    clouds = load_split(pooled, "test")
+    partial, removed = test_protocol_crop(clouds.points, 0.75)
+    rows = [_naive_row(p, r, 0.05) for p, r in zip(partial, removed, strict=True)]
+    categories = clouds.category.tolist()
+    expected = np.mean(
+        [
+            np.mean([r["pred_to_gt"] for r, c in zip(rows, categories) if c == cat])
+            for cat in set(categories)
+        ]
+    )
+    assert scores["floor"]["mean"]["pred_to_gt"] == pytest.approx(expected, rel=1e-4)
+    assert scores["oracle"]["mean"]["cd_l2"] < scores["floor"]["mean"]["cd_l2"] / 5
