@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from brute import capture_panels, naive_fps, nearest_distances, needs_runtime, write_pcd
 
+from pfnet.benchmark_evaluation import evaluate_benchmark
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
 from pfnet.data.benchmarks import load_partials
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluation import evaluate_benchmark
 from pfnet.metrics import fidelity, minimal_matching_distance, sample_metrics
 from pfnet.protocols import (
     SHAPENET_SYNSETS,

@@ -108,6 +108,18 @@ def test_commands_import_no_other_command():
         assert "pfnet.cli" not in imported, name
 
 
+def test_no_module_of_the_package_is_over_500_lines():
+    """README's promise to a newcomer (*Development*): every room is small enough to read."""
+    from pathlib import Path
+
+    import pfnet
+
+    package = Path(pfnet.__file__).parent
+    sizes = {p.relative_to(package): len(p.read_text().splitlines()) for p in package.rglob("*.py")}
+    assert len(sizes) > 50
+    assert {str(path): n for path, n in sizes.items() if n > 500} == {}
+
+
 def test_running_out_of_memory_in_pytorch_is_one_line(monkeypatch, capsys) -> None:
     """The seventh audit: torch's OutOfMemoryError (a RuntimeError) printed a traceback."""
     import pfnet.commands.models as command

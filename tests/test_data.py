@@ -113,8 +113,8 @@ def test_interrupted_write_leaves_nothing(tmp_path: Path, monkeypatch: pytest.Mo
             raise KeyboardInterrupt
         real_write(path, arrays)
 
-    real_write = data_format._write_npz
-    monkeypatch.setattr(data_format, "_write_npz", failing_write)
+    real_write = data_format.write_npz
+    monkeypatch.setattr(data_format, "write_npz", failing_write)
     with pytest.raises(KeyboardInterrupt):
         _procedural(tmp_path / "ds")
     assert list(tmp_path.iterdir()) == []

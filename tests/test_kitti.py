@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from brute import capture_panels, naive_fps, nearest_distances, needs_runtime, write_pcd
 
+from pfnet.benchmark_evaluation import evaluate_kitti, load_references
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
 from pfnet.data.kitti import kitti_input, load_boxes, object_pose
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluation import evaluate_kitti, load_references
 
 KATOR = Path("/usr/share/sweethome3d/furniture/KatorLegaz.sh3f")  # five cars
 LENGTH = 4.0  # metres, the length the cars are scaled to
@@ -314,7 +314,7 @@ def test_kitti_option_errors(kitti_tree, references, tiny_dataset, tmp_path, cap
     assert main([*other, "--protocol", "kitti", "--missing-ratio", "0.5"]) == 1
     assert "the kitti protocol takes no missing ratio" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="scored by evaluate_kitti"):
-        from pfnet.evaluation import evaluate_benchmark
+        from pfnet.benchmark_evaluation import evaluate_benchmark
 
         evaluate_benchmark(pred, data, "kitti")
 

@@ -156,7 +156,8 @@ def test_two_runs_into_one_folder_never_mix(tmp_path, tiny_dataset, checkpoint, 
     import subprocess
     import sys
 
-    from pfnet.inference import check_prediction_folder, open_prediction_folder, run_files
+    from pfnet.prediction_folder import check_prediction_folder, open_prediction_folder
+    from pfnet.prediction_record import run_files
 
     path, _, _ = checkpoint
     out = tmp_path / "pred"

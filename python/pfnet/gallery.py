@@ -157,8 +157,9 @@ def render_benchmark_gallery(
     Raises:
         DataError: A prediction is missing or unreadable.
     """
+    from pfnet.benchmark_evaluation import load_references
     from pfnet.data import load_split
-    from pfnet.evaluation import find_prediction_files, load_references
+    from pfnet.evaluation import find_prediction_files
     from pfnet.io import read_point_cloud
     from pfnet.protocols import category_title, get_protocol, shapenet_crop
     from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels

@@ -36,9 +36,9 @@ def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
 
 
 def format_benchmark_table(report: dict) -> str:
-    """A benchmark protocol's table (:func:`pfnet.evaluation.evaluate_benchmark`): per category
-    CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 and the F-score, then the unweighted mean; ShapeNet
-    synset ids are shown with their names."""
+    """A benchmark protocol's table (:func:`pfnet.benchmark_evaluation.evaluate_benchmark`):
+    per category CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 and the F-score, then the unweighted
+    mean; ShapeNet synset ids are shown with their names."""
     from pfnet.protocols import category_title
 
     header = (
@@ -62,8 +62,8 @@ def format_benchmark_table(report: dict) -> str:
 
 
 def format_kitti_table(report: dict) -> str:
-    """The ``kitti`` protocol's table (:func:`pfnet.evaluation.evaluate_kitti`): per category
-    Fidelity and MMD ×1000, then the unweighted mean."""
+    """The ``kitti`` protocol's table (:func:`pfnet.benchmark_evaluation.evaluate_kitti`): per
+    category Fidelity and MMD ×1000, then the unweighted mean."""
     header = f"{'category':<16} {'n':>6} {'Fidelity':>9} {'MMD':>9}"
     lines = [header, "-" * len(header)]
     for cat, m in sorted(report["categories"].items()):

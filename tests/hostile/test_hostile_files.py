@@ -158,16 +158,16 @@ def test_a_split_larger_than_the_free_memory_is_refused_before_loading(
 ) -> None:
     import shutil
 
-    from pfnet.data import format as data_format
+    from pfnet.data import archives
 
     data = tmp_path / "data"
     shutil.copytree(tiny_dataset, data)
-    monkeypatch.setattr(data_format, "available_memory", lambda: 10_000)
+    monkeypatch.setattr(archives, "available_memory", lambda: 10_000)
     with pytest.raises(
         DataError, match=r"test.npz: loading the split needs [\d.]+ MB of memory; 0.0 MB are"
     ):
         load_split(data, "test")
-    monkeypatch.setattr(data_format, "available_memory", lambda: None)  # not Linux: no check
+    monkeypatch.setattr(archives, "available_memory", lambda: None)  # not Linux: no check
     assert len(load_split(data, "test")) == 12
 
 

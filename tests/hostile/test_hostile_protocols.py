@@ -89,7 +89,7 @@ def test_prepare_lists_at_most_a_thousand_skipped_files(tmp_path, capsys):
 def test_a_benchmark_protocol_refuses_a_data_set_it_does_not_define(
     tiny_dataset, tmp_path, protocol, capsys
 ):
-    from pfnet.evaluation import evaluate_benchmark
+    from pfnet.benchmark_evaluation import evaluate_benchmark
     from pfnet.protocols import check_protocol_data, get_protocol
 
     want = f"the {protocol} protocol needs a data set prepared from its benchmark, but"
@@ -350,7 +350,8 @@ def test_an_interrupted_overwrite_is_finished_by_the_next(
 def test_a_file_put_in_a_folder_being_replaced_after_its_check_is_kept(tiny_dataset, tmp_path):
     """Between the check (before the model runs) and the removal a file may appear: only the
     listed files go, the folder stays with the file, and the old record with them."""
-    from pfnet.inference import check_prediction_folder, open_prediction_folder, run_files
+    from pfnet.prediction_folder import check_prediction_folder, open_prediction_folder
+    from pfnet.prediction_record import run_files
 
     out, args = _predict_args(tiny_dataset, tmp_path)
     assert main([*args, "--split", "test"]) == 0
@@ -378,14 +379,14 @@ def test_a_run_too_large_to_list_its_files_is_not_overwritten(
 ):
     """A record stays within MAX_RECORD_BYTES (its readers' bound): a run whose list of files
     would not fit records none, and --overwrite refuses its folder as an older record's."""
-    from pfnet import inference
+    from pfnet import prediction_record
 
     out, args = _predict_args(tiny_dataset, tmp_path)
     assert main([*args, "--split", "test"]) == 0
     record = json.loads((out / "predictions.json").read_text())
     bound = len(json.dumps({**record, "files": None}, indent=2)) + 100
     assert (out / "predictions.json").stat().st_size > bound
-    monkeypatch.setattr(inference, "MAX_RECORD_BYTES", bound)
+    monkeypatch.setattr(prediction_record, "MAX_RECORD_BYTES", bound)
     shutil.rmtree(out)
     assert main([*args, "--split", "test"]) == 0
     assert (out / "predictions.json").stat().st_size <= bound
@@ -399,7 +400,7 @@ def test_a_run_too_large_to_list_its_files_is_not_overwritten(
     )
     assert _tree(out) == before
     # a record larger than the bound cannot be read
-    monkeypatch.setattr(inference, "MAX_RECORD_BYTES", 100)
+    monkeypatch.setattr(prediction_record, "MAX_RECORD_BYTES", 100)
     assert main([*args, "--split", "val", "--overwrite"]) == 1
     assert "predictions.json cannot be read, so it is not a folder" in capsys.readouterr().err
     assert _tree(out) == before

@@ -124,7 +124,7 @@ def test_a_full_disk_names_the_file_being_written(tmp_path: Path) -> None:
     empty = CloudSet(np.zeros((0, 8, 3), np.float32), np.array([], "U1"), np.array([], "U1"))
     splits = dict.fromkeys(("train", "val", "test"), empty)
     with pytest.MonkeyPatch.context() as patch, pytest.raises(OSError) as caught:
-        patch.setattr("pfnet.data.format._write_npz", full)
+        patch.setattr("pfnet.data.format.write_npz", full)
         write_dataset(tmp_path / "data", splits, {})
     assert caught.value.filename == str(tmp_path / "data")
 

@@ -13,8 +13,8 @@ import pytest
 from forge import write_predictions
 
 from pfnet.cli import main
-from pfnet.inference import MAX_RECORD_BYTES
 from pfnet.io import read_point_cloud, write_ply
+from pfnet.prediction_record import MAX_RECORD_BYTES
 
 
 def _tree(folder: Path) -> dict[str, bytes]:

@@ -16,14 +16,16 @@ import numpy as np
 import pytest
 from brute import write_pcd
 
+from pfnet.benchmark_evaluation import evaluate_benchmark
 from pfnet.cli import main
 from pfnet.data import load_split
 from pfnet.data.benchmarks import load_partials, prepare_benchmark
 from pfnet.data.kitti import kitti_input
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluation import MAX_SCORED_POINTS, evaluate_benchmark, recorded_protocol
+from pfnet.evaluation import MAX_SCORED_POINTS
 from pfnet.formats import MAX_BODY_BYTES
 from pfnet.io import read_point_cloud
+from pfnet.prediction_record import recorded_protocol
 from pfnet.protocols import shapenet_crop
 
 # corners 0 and 3 span the car's length (4 along x), PoinTr's order

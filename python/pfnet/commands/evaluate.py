@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from pfnet.benchmark_evaluation import evaluate_benchmark, evaluate_kitti
 from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError, DataError
 from pfnet.evaluation import (
@@ -20,13 +21,13 @@ from pfnet.evaluation import (
     REGIONS,
     SCALE,
     Evaluation,
-    evaluate_benchmark,
-    evaluate_kitti,
     evaluate_predictions,
+    render_evaluation_gallery,
+)
+from pfnet.prediction_record import (
     recorded_data_problem,
     recorded_protocol,
     recorded_protocol_name,
-    render_evaluation_gallery,
 )
 from pfnet.protocols import Protocol
 

@@ -16,9 +16,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from pfnet.benchmark_inference import predict_benchmark
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
-from pfnet.inference import predict_benchmark, predict_split
+from pfnet.inference import predict_split
 from pfnet.protocols import Protocol, get_protocol
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 from pfnet.shipped import CHECKPOINT_HELP

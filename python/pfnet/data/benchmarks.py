@@ -48,10 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pfnet.data.archives import load_side_file
 from pfnet.data.format import (
     SPLITS,
     CloudSet,
-    load_side_file,
     skipped_entries,
     unsafe_component,
     write_dataset,

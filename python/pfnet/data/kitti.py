@@ -353,6 +353,6 @@ def load_boxes(root: str | os.PathLike[str], split: str, n_cars: int) -> np.ndar
             f"{path}: no boxes; the kitti protocol needs a data set prepared from the KITTI "
             "layout (cars/, bboxes/, KITTI.json)"
         )
-    from pfnet.data.format import load_side_file
+    from pfnet.data.archives import load_side_file
 
     return load_side_file(path, {"boxes": (np.float32, (n_cars, 8, 3))}, "boxes")["boxes"]

@@ -30,13 +30,13 @@ from pfnet.data.format import (
     write_dataset,
 )
 from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
-from pfnet.data.sources import FORMATS, Scan, ShapeItem, load_item
+from pfnet.data.sources import FORMATS, Scan, ShapeItem, detect_format, load_item
 from pfnet.data.splits import assign_splits
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import refuse_overlap
 from pfnet.processes import usable_cpus, worker_pool
 
-__all__ = ["PrepareReport", "assign_splits", "detect_format", "prepare_dataset", "process_item"]
+__all__ = ["PrepareReport", "assign_splits", "prepare_dataset", "process_item"]
 
 
 MIN_POINTS = 16
@@ -108,45 +108,6 @@ class PrepareReport:
             if len(self.skipped) > len(shown):
                 lines.append(f"  … and {len(self.skipped) - len(shown)} more")
         return "\n".join(lines)
-
-
-def detect_format(source: str | os.PathLike[str] | None) -> str:
-    """Guess the source format.
-
-    Args:
-        source: ``None`` or ``"procedural"``, a ``.sh3f`` file, or a folder.
-
-    Returns:
-        One of :data:`pfnet.data.sources.FORMATS` or
-        :data:`pfnet.data.benchmarks.BENCHMARK_FORMATS`.
-
-    Raises:
-        DataError: The source does not exist or matches no format.
-    """
-    from pfnet.data.benchmarks import detect_benchmark
-    from pfnet.data.sources import meshes, shapenet_part, sweethome3d
-
-    if source is None or str(source) == "procedural":
-        return "procedural"
-    path = Path(source)
-    if not path.exists():
-        raise DataError(f"{path}: no such file or folder")
-    if sweethome3d.looks_like(path):
-        return "sweethome3d"
-    if shapenet_part.looks_like(path):
-        return "shapenet-part"
-    benchmark = detect_benchmark(path)
-    if benchmark is not None:
-        return benchmark
-    if meshes.looks_like(path):
-        return "meshes"
-    if path.is_dir() and not any(path.iterdir()):
-        raise DataError(f"{path}: the source folder is empty")
-    raise DataError(
-        f"{path}: cannot detect the format (expected *.sh3f catalogues, a ShapeNet-Part tree "
-        f"with {shapenet_part.CATEGORY_FILE}, or <category>/<mesh file> folders); "
-        "give the format (meshes, shapenet-part or sweethome3d)"
-    )
 
 
 def process_item(

@@ -24,9 +24,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from torch.utils.data import DataLoader, DistributedSampler, Subset
+from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
 from pfnet.checkpoint import read_checkpoint
@@ -44,6 +43,7 @@ from pfnet.training.saving import CheckpointWriter, cpu_snapshot
 from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
 from pfnet.training.signals import StopRequest
 from pfnet.training.step import TrainingStep
+from pfnet.training.validation import score_generator, validation_batches
 
 LAST = "last.pt"
 BEST = "best.pt"
@@ -258,15 +258,9 @@ class Trainer:
     def _validation_batches(self) -> list[dict[str, Any]]:
         """This rank's validation batches, built once (the test protocol is deterministic)."""
         if self._val_batches is None:
-            ctx = self.context
-            shard = Subset(self.val_set, range(ctx.rank, len(self.val_set), ctx.world_size))
-            loader = DataLoader(
-                shard,
-                batch_size=self.config.batch_size,
-                num_workers=0,
-                collate_fn=CompletionCollate(self.collate.multi_resolution, centre_targets=False),
+            self._val_batches = validation_batches(
+                self.val_set, self.context, self.config.batch_size, self.collate.multi_resolution
             )
-            self._val_batches = list(loader)
         return self._val_batches
 
     # -- checkpoints ---------------------------------------------------------------------
@@ -334,30 +328,11 @@ class Trainer:
             metrics.update(self._score(self.generator, "val_live_"))
         return metrics
 
-    @torch.no_grad()
     def _score(self, network: torch.nn.Module, prefix: str) -> dict[str, float]:
-        from pfnet.metrics import sample_metrics, summarize
-
-        ctx = self.context
-        was_training = network.training
-        network.eval()
-        rows: list[tuple[int, str, dict[str, float]]] = []
-        for batch in self._validation_batches():
-            partial = batch["partial"].to(self.device)
-            with self.step.autocast():
-                detail = network(partial, batch.get("scale_indices")).detail
-            metrics = sample_metrics(detail.float().cpu().numpy(), batch["missing"].numpy())
-            for j, index in enumerate(batch["index"].tolist()):
-                values = {k: float(v[j]) for k, v in metrics.items()}
-                rows.append((index, batch["category"][j], values))
-        network.train(was_training)
-        gathered = distributed.all_gather_objects(rows, ctx)
-        rows = sorted((r for part in gathered for r in part), key=lambda r: r[0])
-        if not rows:
-            return {}
-        per_sample = {k: np.array([r[2][k] for r in rows]) for k in rows[0][2]}
-        summary = summarize(per_sample, [r[1] for r in rows])["mean"]
-        return {f"{prefix}{k}": float(v) for k, v in summary.items() if k != "n"}
+        batches = self._validation_batches()
+        return score_generator(
+            network, batches, self.device, self.step.autocast, self.context, prefix
+        )
 
     # -- the loop ------------------------------------------------------------------------
 

@@ -6,6 +6,7 @@ the worker processes call :func:`load_item` to load one shape as a mesh or a poi
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -14,13 +15,14 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.data.format import RECORD_NAME
-from pfnet.errors import ConfigError
+from pfnet.errors import ConfigError, DataError
 
 __all__ = [
     "FORMATS",
     "Geometry",
     "Scan",
     "ShapeItem",
+    "detect_format",
     "load_item",
     "pick_source",
     "safe_name",
@@ -174,3 +176,42 @@ def load_item(item: ShapeItem, seed: int) -> Geometry:
 
         return build_shape(item.category, seed, item.key)
     raise ValueError(f"unknown shape kind {item.kind!r}")
+
+
+def detect_format(source: str | os.PathLike[str] | None) -> str:
+    """Guess the source format.
+
+    Args:
+        source: ``None`` or ``"procedural"``, a ``.sh3f`` file, or a folder.
+
+    Returns:
+        One of :data:`pfnet.data.sources.FORMATS` or
+        :data:`pfnet.data.benchmarks.BENCHMARK_FORMATS`.
+
+    Raises:
+        DataError: The source does not exist or matches no format.
+    """
+    from pfnet.data.benchmarks import detect_benchmark
+    from pfnet.data.sources import meshes, shapenet_part, sweethome3d
+
+    if source is None or str(source) == "procedural":
+        return "procedural"
+    path = Path(source)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    if sweethome3d.looks_like(path):
+        return "sweethome3d"
+    if shapenet_part.looks_like(path):
+        return "shapenet-part"
+    benchmark = detect_benchmark(path)
+    if benchmark is not None:
+        return benchmark
+    if meshes.looks_like(path):
+        return "meshes"
+    if path.is_dir() and not any(path.iterdir()):
+        raise DataError(f"{path}: the source folder is empty")
+    raise DataError(
+        f"{path}: cannot detect the format (expected *.sh3f catalogues, a ShapeNet-Part tree "
+        f"with {shapenet_part.CATEGORY_FILE}, or <category>/<mesh file> folders); "
+        "give the format (meshes, shapenet-part or sweethome3d)"
+    )
