@@ -108,6 +108,13 @@ def test_commands_import_no_other_command():
         assert "pfnet.cli" not in imported, name
 
 
+def test_every_command_is_summarised_as_a_sentence_in_pfnet_help():
+    import importlib
+
+    helps = {name: importlib.import_module(module).HELP for name, module in COMMANDS.items()}
+    assert {n: h for n, h in helps.items() if not (h[0].isupper() and h.endswith("."))} == {}
+
+
 def test_no_module_of_the_package_is_over_500_lines():
     """README's promise to a newcomer (*Development*): every room is small enough to read."""
     from pathlib import Path

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-HELP = "list the trained models shipped with pfnet (usable as --checkpoint NAME)"
+HELP = "List the trained models shipped with pfnet (usable as --checkpoint NAME)."
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

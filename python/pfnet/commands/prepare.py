@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pfnet.errors import ConfigError
 
-HELP = "build a completion dataset (sampled, normalised point clouds) from a source"
+HELP = "Build a completion dataset (sampled, normalised point clouds) from a source."
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
