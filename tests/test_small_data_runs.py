@@ -49,3 +49,25 @@ def test_a_run_with_a_weight_average_gets_a_row_for_its_live_weights(
         "| ema (live weights) | l1 | 300 | 10.00 | 9.00 | 7.00 (step 200) | 0.010 | — | — |" in out
     )
     assert "plain (live weights)" not in out
+
+
+@pytest.mark.parametrize(
+    ("folder", "label"),
+    [
+        ("L1-8000-shipped", "L1 (the shipped `sh3d-small`), from scratch"),
+        ("proc-pre-8000", "10,000 procedural shapes only (training: procedural crops)"),
+        ("proc-ft-8000", "the same, then the L1 recipe on the 574 catalogue shapes"),
+    ],
+)
+def test_readme_procedural_pretraining_rows_are_their_files(small_data_runs, folder, label):
+    """The table under *Pretraining on procedural shapes*: each row's figures are what the
+    script computes from the run's committed files (its name and loss columns aside)."""
+    root = Path(__file__).resolve().parent.parent
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    computed = small_data_runs.table_row(
+        small_data_runs.summarise(root / "docs" / "small-data" / folder)
+    )
+    figures = computed.split(" | ", 3)[3]  # steps onwards
+    row = next(line for line in readme.splitlines() if line.startswith(f"| {label} |"))
+    published = row.split(" | ", 2)[2].replace("**", "").replace("+", "")
+    assert published == figures
