@@ -34,12 +34,12 @@ from pfnet.data import load_split, missing_count, test_protocol_crop
 from pfnet.data.crops import test_protocol_viewpoints
 from pfnet.data.format import read_manifest
 from pfnet.errors import DataError, PfnetError
+from pfnet.evaluation import SCALE
 from pfnet.geometry import crop_by_viewpoint
 from pfnet.io import atomic_path
 from pfnet.metrics import sample_metrics, summarize
 
 MESH_SOURCES = ("sweethome3d", "procedural")
-SCALE = 1000.0  # Chamfer figures ×1000, as pfnet evaluate prints them
 
 
 def oracle_scores(
@@ -80,31 +80,34 @@ def oracle_scores(
     viewpoints = test_protocol_viewpoints(len(clouds))
     m = missing_count(n_points, missing_ratio)
     categories = [str(c) for c in clouds.category]
-    fresh, nearest = [], []
-    for i in range(len(clouds)):
-        for k in range(samples):
-            cloud = clouds.extra[i, k * n_points : (k + 1) * n_points]
-            fresh.append(crop_by_viewpoint(cloud, viewpoints[i], n_missing=m)[1])
-        # the partial keeps n - m points: all of them when that is not more than m
-        kept = partial[i]
-        nearest.append(
-            kept if m >= len(kept) else crop_by_viewpoint(kept, viewpoints[i], n_missing=m)[1]
-        )
+    # crop_by_viewpoint takes a batch: one call for each fresh sample, shape-major after stacking
+    fresh = np.stack(
+        [
+            crop_by_viewpoint(
+                clouds.extra[:, k * n_points : (k + 1) * n_points], viewpoints, n_missing=m
+            )[1]
+            for k in range(samples)
+        ],
+        axis=1,
+    ).reshape(-1, m, 3)
+    # the partial keeps n - m points: all of them when that is not more than m
+    keep = partial.shape[1]
+    nearest = partial if m >= keep else crop_by_viewpoint(partial, viewpoints, n_missing=m)[1]
     oracle = _summary(fresh, np.repeat(removed, samples, axis=0), categories, samples, threshold)
     floor = _summary(nearest, removed, categories, 1, threshold)
     return {"samples": samples, "shapes": len(clouds), "oracle": oracle, "floor": floor}
 
 
 def _summary(
-    predictions: list[np.ndarray],
+    predictions: np.ndarray,
     truths: np.ndarray,
     categories: list[str],
     repeats: int,
     threshold: float,
 ) -> dict:
     """``pfnet evaluate``'s per-category and mean figures of ``repeats`` predictions a shape."""
-    per_sample = sample_metrics(np.stack(predictions), truths, threshold)
-    summary = summarize(per_sample, np.repeat(categories, repeats), scale=SCALE)
+    per_sample = sample_metrics(predictions, truths, threshold)
+    summary = summarize(per_sample, np.repeat(categories, repeats), scale=float(SCALE))
 
     def row(metrics: dict) -> dict:
         chamfer = {k: float(metrics[k]) for k in ("pred_to_gt", "gt_to_pred")}
