@@ -25,12 +25,33 @@ from pfnet.inference import predict_split
 from pfnet.shipped import SUFFIX, WEIGHTS_DIR, write_shipped
 
 
+def _data_summary(data: Path) -> dict:
+    """Where a data set's training shapes come from, for the card (creators are in credits)."""
+    manifest = read_manifest(data)
+    splits = manifest.get("splits") or {}
+    shapes = splits["train"]["total"] if "train" in splits else len(load_split(data, "train"))
+    return {
+        "source": manifest.get("source"),
+        "shapes": shapes,
+        "categories": manifest.get("categories"),
+        "licenses": [
+            {k: v for k, v in licence.items() if k != "creators"}
+            for licence in manifest.get("licenses") or []
+        ],
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("checkpoint", type=Path, help="best.pt of pfnet train, or a model file")
     parser.add_argument("--name", required=True)
     parser.add_argument("--train-data", type=Path, required=True, help="data set it trained on")
     parser.add_argument("--test-data", type=Path, required=True, help="data set to score on")
+    parser.add_argument(
+        "--pretrain-data",
+        type=Path,
+        help="data set the run's --init-from weights were trained on (recorded in the card)",
+    )
     parser.add_argument("--summary", required=True, help="one line for `pfnet models`")
     parser.add_argument("--recipe", required=True, help="how it was trained (the command)")
     parser.add_argument("--out-dir", type=Path, default=WEIGHTS_DIR)
@@ -50,18 +71,10 @@ def main(argv: list[str] | None = None) -> int:
         evaluation = evaluate_predictions(pred, args.test_data, missing_ratio=0.25)
     mean = evaluation.report["mean"]
     manifest = read_manifest(args.train_data)
-    card = {
+    card: dict = {
         "summary": args.summary,
         "recipe": args.recipe,
-        "train_data": {
-            "source": manifest.get("source"),
-            "shapes": len(trained_on),
-            "categories": manifest.get("categories"),
-            "licenses": [
-                {k: v for k, v in licence.items() if k != "creators"}
-                for licence in manifest.get("licenses") or []
-            ],
-        },
+        "train_data": _data_summary(args.train_data),
         "test": {
             "data": f"{args.test_data.name} test split ({len(test)} shapes, never trained "
             "on), 25 % missing, mean over categories",
@@ -73,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         },
         "credits": manifest.get("credits") or {},
     }
+    if args.pretrain_data is not None:
+        card["pretrain_data"] = _data_summary(args.pretrain_data)
     write_shipped(args.checkpoint, out, card=card)
     size = out.stat().st_size / 1e6
     print(json.dumps({k: v for k, v in card.items() if k != "credits"}, indent=2))
