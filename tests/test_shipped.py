@@ -4,6 +4,7 @@ default model that `complete` and `predict` use with no --checkpoint."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +72,9 @@ def test_model_file_round_trip_matches_the_checkpoint_within_float16(
     assert torch.allclose(a, b, atol=2e-3), (a - b).abs().max()
     assert not torch.equal(a, b)  # the weights really were stored as float16
     assert path.stat().st_size < 0.6 * checkpoint.stat().st_size
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # as any file written here
 
 
 def test_a_model_file_gets_a_new_card_and_keeps_its_weights(

@@ -169,6 +169,11 @@ def write_shipped(
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out) as tmp:
         save_file(tensors, str(tmp), metadata=metadata)
+        # safetensors creates its file readable by its owner only; give it the permissions
+        # that the umask gives every other file pfnet writes
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o666 & ~umask)
     return out
 
 
