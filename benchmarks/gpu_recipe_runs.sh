@@ -10,14 +10,20 @@
 # B = 2N steps (the twice-the-steps test), C = N steps at width 0.5 (the width lever). N comes
 # from a short calibration of the three running together, so that B ends inside the budget.
 # RUNS="NAME:STEPS:WIDTH:SEED[:CHAMFER] ..." runs those instead, without the calibration
-# (CHAMFER: the loss's Chamfer, l2 or l1; default l2). Every run's
+# (CHAMFER: the loss's Chamfer, l2 or l1; default l2); INIT=WEIGHTS starts every run from
+# those weights (--init-from; e.g. .gpu/init.pt, put there after pack). Every run's
 # best.pt and last weights then predict the 8 categories' test split; $OUT gets one JSON
 # (configs, logs, test scores) and the generators of the runs in EXPORT (default "A B") as
-# float16 model files (9.7 MB each: the artefact that would ship, not a training checkpoint).
+# float16 model files (9.7 MB each: the artefact that would ship, not a training checkpoint),
+# of best.pt and the last weights (EXPORT_WHICH="best last"; at most 8 files come back).
 # The runs behind the README's GPU table (docs/small-data/gpu-D-*), one H200:
 #     bash benchmarks/gpu_recipe_runs.sh run 430
 #     RUNS="B2:16000:0.25:0 C2:8000:0.5:0 A2:8000:0.25:1" EXPORT="B2 A2" \
 #       bash benchmarks/gpu_recipe_runs.sh run 470
+# The shipped recipe's seed spread (issue #13; docs/small-data/gpu-proc-ft-seed*): its
+# procedural pretraining's best.pt copied to .gpu/init.pt after pack, then
+#     INIT=.gpu/init.pt RUNS="S1:8000:0.25:1:l1 S2:8000:0.25:2:l1 S3:8000:0.25:3:l1 \
+#       S4:8000:0.25:4:l1" EXPORT="S1 S2 S3 S4" EXPORT_WHICH=best bash benchmarks/gpu_recipe_runs.sh run 420
 # The study with the recipe (pfnet reproduce, issue #13 item 7; docs/results and
 # docs/results/longer-runs), the second call with the device time left:
 #     bash benchmarks/gpu_recipe_runs.sh study 555
@@ -38,9 +44,10 @@ if [ "$1" = pack ]; then
   cp python/pfnet/_core.abi3.so .gpu/
   python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
     --platform manylinux2014_x86_64 -d .gpu trimesh safetensors
-  # The pool travels as float16 (its first 2,048 points, the fixed cloud, stay float32): the
-  # carry limit is 64 MiB. unpack restores float32; the rounding (< 2.5e-4 in unit-ball units)
-  # is far below the crop and surface-sampling noise the pool exists to add.
+  # The training points (the fixed cloud and the rest of the pool) travel as float16: the
+  # carry limit is 64 MiB, tree included. unpack restores float32; the rounding (< 2.5e-4 in
+  # unit-ball units) is far below the crop and surface-sampling noise the pool exists to add.
+  # The validation and test splits travel as they are.
   python3 - "$train" .gpu/train-data <<'PY'
 import json, shutil, sys
 from pathlib import Path
@@ -49,7 +56,7 @@ src, dst = Path(sys.argv[1]), Path(sys.argv[2])
 dst.mkdir(parents=True)
 shutil.copy(src / "manifest.json", dst)
 z = np.load(src / "train.npz")
-np.savez(dst / "train16.npz", **{k: (z[k].astype(np.float16) if k == "extra" else z[k]) for k in z.files})
+np.savez(dst / "train16.npz", **{k: (z[k].astype(np.float16) if k in ("points", "extra") else z[k]) for k in z.files})
 PY
   mkdir .gpu/val-data && cp "$val"/{manifest.json,val.npz,test.npz} .gpu/val-data
   du -sh .gpu
@@ -79,13 +86,14 @@ src, dst = Path(sys.argv[1]), Path(sys.argv[2])
 dst.mkdir(parents=True)
 shutil.copy(src / "manifest.json", dst)
 z = np.load(src / "train16.npz")
-np.savez(dst / "train.npz", **{k: (z[k].astype(np.float32) if k == "extra" else z[k]) for k in z.files})
+np.savez(dst / "train.npz", **{k: (z[k].astype(np.float32) if z[k].dtype == np.float16 else z[k]) for k in z.files})
 PY
 train() {  # NAME STEPS WIDTH SECONDS-LEFT [SEED] [MODEL] [MISSING-RATIO] [CHAMFER]
   timeout --signal=INT --kill-after=20 "$4" python3 -m pfnet.cli train --data "$work/train-data" \
     --val-data .gpu/val-data --out "$work/$1" --model "${6:-pfnet-vanilla}" --preset small \
     --steps "$2" --width "$3" --seed "${5:-0}" --workers "$workers" --device "$device" \
-    --missing-ratio "${7:-0.25}" --chamfer "${8:-l2}" > "$work/$1.log" 2>&1
+    --missing-ratio "${7:-0.25}" --chamfer "${8:-l2}" ${INIT:+--init-from "$INIT"} \
+    > "$work/$1.log" 2>&1
   echo "$1 exit $?" >> "$work/exits"
 }
 if [ "$mode" = study ]; then
@@ -216,13 +224,14 @@ if [ "$n" -gt 0 ]; then
 fi
 fi
 log "training done"; cat "$work/exits"
-python3 - "$work" "$out" "$device" "${EXPORT:-A B}" <<'PY'
+python3 - "$work" "$out" "$device" "${EXPORT:-A B}" "${EXPORT_WHICH:-best last}" <<'PY'
 import json, sys, traceback
 from pathlib import Path
 from pfnet.evaluation import evaluate_predictions
 from pfnet.inference import predict_split
 from pfnet.shipped import write_shipped
-work, out, device, export = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4].split()
+work, out, device = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+export, export_which = sys.argv[4].split(), sys.argv[5].split()
 summary = {"exits": (work / "exits").read_text().split("\n"), "runs": {}}
 for run in sorted(p for p in work.iterdir() if (p / "config.json").exists()):
     entry = summary["runs"][run.name] = {
@@ -241,7 +250,7 @@ for run in sorted(p for p in work.iterdir() if (p / "config.json").exists()):
             mean = report["mean"]
             print(run.name, which, round(mean["pred_to_gt"] + mean["gt_to_pred"], 3),
                   round(mean["f_score"], 4), flush=True)
-            if run.name in export:
+            if run.name in export and which in export_which:
                 write_shipped(run / f"{which}.pt", out / f"{run.name}-{which}.safetensors")
         except Exception:
             entry["test"][which] = traceback.format_exc()

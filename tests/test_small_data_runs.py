@@ -76,3 +76,48 @@ def test_readme_procedural_pretraining_rows_are_their_files(small_data_runs, fol
     row = next(line for line in rows if line.startswith(f"| {label} |"))
     published = row.split(" | ", 2)[2].replace("+", "")
     assert published == figures
+
+
+SEED_ROWS = [
+    ("proc-ft-8000", "seed 0, this CPU (the shipped `sh3d-small`)"),
+    *((f"gpu-proc-ft-seed{i}", f"seed {i}, H200") for i in range(6)),
+]
+
+
+def _readme_row(label: str) -> str:
+    root = Path(__file__).resolve().parent.parent
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    rows = [line.replace("**", "") for line in readme.splitlines()]
+    return next(line for line in rows if line.startswith(f"| {label} |"))
+
+
+@pytest.mark.parametrize(("folder", "label"), SEED_ROWS)
+def test_readme_seed_rows_are_their_files(small_data_runs, folder, label):
+    """The table under *Seven seeds of the shipped recipe*: each row's figures (training
+    onwards) are what the script computes from the run's committed files."""
+    run = Path(__file__).resolve().parent.parent / "docs" / "small-data" / folder
+    figures = small_data_runs.table_row(small_data_runs.summarise(run)).split(" | ", 3)[3]
+    assert _readme_row(label).split(" | ", 1)[1] == figures
+
+
+def test_readme_seed_means_are_those_of_the_seven_runs(small_data_runs):
+    """The table's last row: mean ± sample standard deviation of the seven runs."""
+    import statistics
+
+    root = Path(__file__).resolve().parent.parent / "docs" / "small-data"
+    runs = [small_data_runs.summarise(root / folder) for folder, _ in SEED_ROWS]
+
+    def spread(key: str, digits: int) -> str:
+        values = [r[key] for r in runs]
+        return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
+
+    expected = [
+        spread("train", 2),
+        spread("val_last_tenth", 2),
+        spread("val_best", 2),
+        spread("val_f_last_tenth", 3),
+        f"{spread('test_best', 2)} / {spread('test_last', 2)}",
+        f"{spread('f_best', 4)} / {spread('f_last', 4)}",
+    ]
+    row = _readme_row("mean ± standard deviation of the seven")
+    assert row.strip(" |").split(" | ")[1:] == expected
