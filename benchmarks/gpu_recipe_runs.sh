@@ -24,6 +24,8 @@
 # procedural pretraining's best.pt copied to .gpu/init.pt after pack, then
 #     INIT=.gpu/init.pt RUNS="S1:8000:0.25:1:l1 S2:8000:0.25:2:l1 S3:8000:0.25:3:l1 \
 #       S4:8000:0.25:4:l1" EXPORT="S1 S2 S3 S4" EXPORT_WHICH=best bash benchmarks/gpu_recipe_runs.sh run 420
+# Its procedural pretraining at twice the steps, then the fine-tuning (mode pretrain, below):
+#     EXPORT="P F" EXPORT_WHICH=best bash benchmarks/gpu_recipe_runs.sh pretrain 420
 # The study with the recipe (pfnet reproduce, issue #13 item 7; docs/results and
 # docs/results/longer-runs), the second call with the device time left:
 #     bash benchmarks/gpu_recipe_runs.sh study 555
@@ -63,8 +65,8 @@ PY
   exit 0
 fi
 
-[ "$1" = run ] || [ "$1" = study ] || [ "$1" = runs ] || {
-  echo "usage: $0 pack TRAIN VAL | run BUDGET_S | study BUDGET_S | runs BUDGET_S" >&2; exit 2; }
+[ "$1" = run ] || [ "$1" = study ] || [ "$1" = runs ] || [ "$1" = pretrain ] || {
+  echo "usage: $0 pack TRAIN VAL | run|study|runs|pretrain BUDGET_S" >&2; exit 2; }
 mode=$1 t0=$(date +%s) budget=$2
 device=${DEVICE:-cuda} workers=${WORKERS:-4} cal_steps=${CAL_STEPS:-108} max_n=${MAX_N:-20000}
 out=${OUT:-/tmp/gpu-out}; mkdir -p "$out"
@@ -89,7 +91,7 @@ z = np.load(src / "train16.npz")
 np.savez(dst / "train.npz", **{k: (z[k].astype(np.float32) if z[k].dtype == np.float16 else z[k]) for k in z.files})
 PY
 train() {  # NAME STEPS WIDTH SECONDS-LEFT [SEED] [MODEL] [MISSING-RATIO] [CHAMFER]
-  timeout --signal=INT --kill-after=20 "$4" python3 -m pfnet.cli train --data "$work/train-data" \
+  timeout --signal=INT --kill-after=20 "$4" python3 -m pfnet.cli train --data "${DATA:-$work/train-data}" \
     --val-data .gpu/val-data --out "$work/$1" --model "${6:-pfnet-vanilla}" --preset small \
     --steps "$2" --width "$3" --seed "${5:-0}" --workers "$workers" --device "$device" \
     --missing-ratio "${7:-0.25}" --chamfer "${8:-l2}" ${INIT:+--init-from "$INIT"} \
@@ -182,7 +184,28 @@ if [ "$mode" = runs ]; then
   ls -la "$out"; log "done"
   exit 0
 fi
-if [ -n "${RUNS:-}" ]; then  # RUNS="NAME:STEPS:WIDTH:SEED[:CHAMFER] ...": no calibration
+if [ "$mode" = pretrain ]; then
+  # The shipped recipe with a longer procedural pretraining (the twice-the-steps test of its
+  # first stage): P = PRETRAIN_STEPS (default 16,000) on `pfnet prepare procedural --count
+  # 2000 --pool 8192` made here (the shipped pretraining's data: same command, same seed),
+  # then F = FT_STEPS (default 8,000) of the L1 recipe from P's best.pt, one after the other,
+  # seed SEED (default 0). Both are scored below; EXPORT="P F" EXPORT_WHICH=best brings back
+  # their generators (P's: to fine-tune elsewhere if F did not finish). On an H200, P alone
+  # took 356 s (22 ms a step), so P and F do not fit in one session's device time; the
+  # fine-tuning of docs/small-data/gpu-proc-pre-16000 ran on the CPU from P-best.safetensors.
+  log "procedural data"
+  python3 -m pfnet.cli prepare procedural --count "${PROC_COUNT:-2000}" --pool 8192 \
+    --out "$work/proc" > "$work/prepare.log" 2>&1 || { cat "$work/prepare.log"; exit 1; }
+  log "P: ${PRETRAIN_STEPS:-16000} steps on the procedural shapes"
+  DATA=$work/proc train P "${PRETRAIN_STEPS:-16000}" 0.25 $(( budget - ($(date +%s) - t0) - 40 )) \
+    "${SEED:-0}" pfnet-vanilla 0.25 l1
+  # P's generator comes back even if the machine's time runs out during F.
+  python3 -c "import sys; from pfnet.shipped import write_shipped; write_shipped(*sys.argv[1:])" \
+    "$work/P/best.pt" "$out/P-best.safetensors"
+  log "F: ${FT_STEPS:-8000} steps of the L1 recipe from P's best.pt"
+  INIT=$work/P/best.pt train F "${FT_STEPS:-8000}" 0.25 $(( budget - ($(date +%s) - t0) - 40 )) \
+    "${SEED:-0}" pfnet-vanilla 0.25 l1
+elif [ -n "${RUNS:-}" ]; then  # RUNS="NAME:STEPS:WIDTH:SEED[:CHAMFER] ...": no calibration
   left=$(( budget - ($(date +%s) - t0) - 40 ))
   for spec in $RUNS; do IFS=: read -r name steps width seed chamfer <<< "$spec"
     log "$name: $steps steps, width $width, seed $seed, chamfer ${chamfer:-l2}"

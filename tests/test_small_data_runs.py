@@ -61,6 +61,8 @@ def test_a_run_with_a_weight_average_gets_a_row_for_its_live_weights(
             "the same, then the L1 recipe on the 574 catalogue shapes (the shipped `sh3d-small`)",
         ),
         ("proc-ft-16000", "the same fine-tuning, twice the steps"),
+        ("gpu-proc-pre-16000", "10,000 procedural shapes only, twice the steps (H200)"),
+        ("proc16-ft-8000", "the 16,000-step pretraining, then the same L1 recipe (this CPU)"),
     ],
 )
 def test_readme_procedural_pretraining_rows_are_their_files(small_data_runs, folder, label):
