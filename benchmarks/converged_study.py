@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -80,6 +81,12 @@ def _cd(setting: dict[str, Any]) -> float:
     return mean["pred_to_gt"] + mean["gt_to_pred"]
 
 
+def _base_ratio(settings: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The settings at the base missing ratio, in the paper's order of the models."""
+    base = (s for s in settings if s["missing_ratio"] == BASE_RATIO)
+    return sorted(base, key=lambda s: PAPER_ORDER.index(s["model"]))
+
+
 def _ranking(when: str, settings: list[dict[str, Any]]) -> str:
     return (
         f"Ranking {when} by mean missing-region CD-L2: "
@@ -123,16 +130,9 @@ def section(results: Path = RESULTS) -> str:
         where = " and ".join(sorted(machines))
         lines.append(f"| {name} | {lengths} | {n} | {val} | {test} | {fs} | {where} |")
     chosen = [e["lengths"][e["at"]] for e in entries]
-    base = sorted(
-        (s for s in chosen if s["missing_ratio"] == BASE_RATIO),
-        key=lambda s: PAPER_ORDER.index(s["model"]),
-    )
+    base = _base_ratio(chosen)
     steps = ", ".join(f"{MODEL_TITLES[s['model']]} {s['steps']:,}" for s in base)
-    longest = [e["lengths"][min(e["at"] + 1, len(e["lengths"]) - 1)] for e in entries]
-    twice = sorted(
-        (s for s in longest if s["missing_ratio"] == BASE_RATIO),
-        key=lambda s: PAPER_ORDER.index(s["model"]),
-    )
+    twice = _base_ratio(e["lengths"][min(e["at"] + 1, len(e["lengths"]) - 1)] for e in entries)
     twice_steps = ", ".join(f"{MODEL_TITLES[s['model']]} {s['steps']:,}" for s in twice)
     not_converged = [e for e in entries if not e["is_converged"]]
     lines += [

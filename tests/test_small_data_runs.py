@@ -51,6 +51,13 @@ def test_a_run_with_a_weight_average_gets_a_row_for_its_live_weights(
     assert "plain (live weights)" not in out
 
 
+def _readme_row(label: str) -> str:
+    root = Path(__file__).resolve().parent.parent
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    rows = [line.replace("**", "") for line in readme.splitlines()]
+    return next(line for line in rows if line.startswith(f"| {label} |"))
+
+
 @pytest.mark.parametrize(
     ("folder", "label"),
     [
@@ -68,15 +75,9 @@ def test_a_run_with_a_weight_average_gets_a_row_for_its_live_weights(
 def test_readme_procedural_pretraining_rows_are_their_files(small_data_runs, folder, label):
     """The table under *Pretraining on procedural shapes*: each row's figures are what the
     script computes from the run's committed files (its name and loss columns aside)."""
-    root = Path(__file__).resolve().parent.parent
-    readme = (root / "README.md").read_text(encoding="utf-8")
-    computed = small_data_runs.table_row(
-        small_data_runs.summarise(root / "docs" / "small-data" / folder)
-    )
-    figures = computed.split(" | ", 3)[3]  # steps onwards
-    rows = [line.replace("**", "") for line in readme.splitlines()]
-    row = next(line for line in rows if line.startswith(f"| {label} |"))
-    published = row.split(" | ", 2)[2].replace("+", "")
+    run = Path(__file__).resolve().parent.parent / "docs" / "small-data" / folder
+    figures = small_data_runs.table_row(small_data_runs.summarise(run)).split(" | ", 3)[3]
+    published = _readme_row(label).split(" | ", 2)[2].replace("+", "")
     assert published == figures
 
 
@@ -84,13 +85,6 @@ SEED_ROWS = [
     ("proc-ft-8000", "seed 0, this CPU (the shipped `sh3d-small`)"),
     *((f"gpu-proc-ft-seed{i}", f"seed {i}, H200") for i in range(6)),
 ]
-
-
-def _readme_row(label: str) -> str:
-    root = Path(__file__).resolve().parent.parent
-    readme = (root / "README.md").read_text(encoding="utf-8")
-    rows = [line.replace("**", "") for line in readme.splitlines()]
-    return next(line for line in rows if line.startswith(f"| {label} |"))
 
 
 @pytest.mark.parametrize(("folder", "label"), SEED_ROWS)
