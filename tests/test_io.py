@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import struct
 
 import numpy as np
@@ -461,6 +462,6 @@ def test_os_error_is_reported_as_data_error(tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(np, "load", refuse)
+    monkeypatch.setattr(os, "preadv", refuse)  # how every binary body is read
     with pytest.raises(DataError, match=r"locked\.npy: cannot read: Permission denied"):
         read_point_cloud(path)

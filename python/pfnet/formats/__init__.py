@@ -83,16 +83,65 @@ def read_header(fh, file: Path, end: bytes, max_lines: int = 10_000) -> list[str
     raise DataError(f"{file}: header longer than {max_lines} lines")
 
 
-def map_rest(fh) -> np.ndarray | bytes:
-    """The rest of an open file as a read-only memory map (bytes when nothing is left).
+class FileBody:
+    """The rest of an open file from its current position, read into memory as a reader asks.
 
-    Binary bodies are read through the map: only the pages a reader touches are loaded, so
-    a file padded with gigabytes after its points (or a sparse one) costs no memory.
+    Never memory-mapped: a mapped body that shrinks while it is read (a file being rewritten
+    or truncated) kills the process with SIGBUS, no message and the other inputs lost (issue
+    36). The size is taken once, when the body is opened; a reader checks what it needs
+    against ``len(body)`` and then reads just that (:meth:`read` for a span, :meth:`upto`
+    for a walk from the start), so a file padded with gigabytes after its points costs no
+    memory. A file that ends before the size it had is refused naming the file.
     """
-    start = fh.tell()
-    if os.fstat(fh.fileno()).st_size <= start:
-        return b""
-    return np.memmap(fh, dtype=np.uint8, mode="r", offset=start)
+
+    def __init__(self, fh, file: Path) -> None:
+        self._fd = fh.fileno()
+        self._start = fh.tell()
+        self.file = file
+        self.size = max(os.fstat(self._fd).st_size - self._start, 0)
+        self._data = bytearray()
+
+    def __len__(self) -> int:
+        return self.size
+
+    def _fill(self, buffer: bytearray, have: int, start: int) -> None:
+        view = memoryview(buffer)
+        try:
+            while have < len(buffer):
+                got = os.preadv(self._fd, [view[have:]], self._start + start + have)
+                if got == 0:
+                    raise DataError(
+                        f"{self.file}: the file changed while pfnet read it (it held "
+                        f"{self._start + self.size} bytes when opened, ends at "
+                        f"{self._start + start + have} now); read it again once it is written"
+                    )
+                have += got
+        finally:
+            view.release()
+
+    def read(self, start: int, stop: int) -> bytearray:
+        """Bytes ``start:stop`` of the body (``stop`` at most ``len(body)``)."""
+        stop = min(stop, self.size)
+        buffer = bytearray(max(stop - start, 0))
+        self._fill(buffer, 0, start)
+        return buffer
+
+    def upto(self, stop: int) -> bytearray:
+        """Bytes ``0:stop`` of the body, at least (grown from what was read before, never
+        resized in place, so arrays viewing an earlier result stay valid)."""
+        stop = min(stop, self.size)
+        have = len(self._data)
+        if have < stop:
+            grown = bytearray(stop)
+            grown[:have] = self._data
+            self._fill(grown, have, 0)
+            self._data = grown
+        return self._data
+
+
+def map_rest(fh, file: Path) -> FileBody:
+    """The rest of an open file as a :class:`FileBody` (read on demand, never mapped)."""
+    return FileBody(fh, file)
 
 
 # Columns a point table may have (x y z, normals, colours, intensity, labels, ...).

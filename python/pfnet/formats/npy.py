@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import tokenize
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import check_body_span, check_point_count, check_table, first_three_columns
+from pfnet.formats import FileBody, check_body_span, check_point_count, check_table
 
 # What numpy's header reader raises on hostile bytes: besides ValueError and EOFError, its
 # fallback for Python-2 headers tokenizes the text (tokenize.TokenError, SyntaxError on an
@@ -95,7 +96,11 @@ def check_npy_header(
 
 def read_npy(file: Path) -> np.ndarray:
     with open(file, "rb") as fh:
-        shape, dtype = check_npy_header(str(file), fh, file.stat().st_size)
+        shape, dtype = check_npy_header(str(file), fh, os.fstat(fh.fileno()).st_size)
+        return _checked_columns(file, fh, shape, dtype)
+
+
+def _checked_columns(file: Path, fh, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
     # the declared shape and dtype are checked before anything is loaded: a 4 KB sparse
     # file declaring shape (2, 5·10^8) took 3.9 GB before its columns were refused
     if dtype.hasobject:  # np.load would refuse it too (allow_pickle=False)
@@ -104,12 +109,49 @@ def read_npy(file: Path) -> np.ndarray:
     check_point_count(file, shape[0])
     # the rows are walked (mapped) as a PLY or PCD body is: the same bound on their bytes
     check_body_span(file, shape[0] * shape[1] * dtype.itemsize, f"the .npy rows {shape}")
+    return _read_columns(file, fh, shape, dtype)
+
+
+# Rows read at a time from a .npy body: bounds the memory beyond the three columns kept.
+_NPY_BLOCK_BYTES = 1 << 24
+
+
+def _read_columns(file: Path, fh, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """The first three columns of a checked ``.npy`` table, read a block of rows at a time.
+
+    Read from the open file whose header was checked, never memory-mapped: a mapped file
+    truncated while it is read kills the process with SIGBUS (issue 36). A file that ends
+    early is refused naming it. Only the header's order flag is read again here.
+    """
+    from numpy.lib import format as npy_format
+
+    rows, columns = shape
+    data_start = fh.tell()
+    fh.seek(0)
     try:
-        # mapped, so only the three coordinate columns are copied into memory
-        with HEADER_LOCK:  # np.load parses the header again
-            array = np.load(file, mmap_mode="r", allow_pickle=False)
-    except _HEADER_ERRORS as err:  # object arrays, bad headers, truncated data
+        with HEADER_LOCK:
+            version = npy_format.read_magic(fh)
+            if version == (1, 0):
+                _, fortran, _ = npy_format.read_array_header_1_0(fh)
+            else:
+                _, fortran, _ = npy_format.read_array_header_2_0(fh)
+    except _HEADER_ERRORS as err:
         raise DataError(f"{file}: not a valid .npy array file ({err})") from None
-    if not isinstance(array, np.ndarray):
-        raise DataError(f"{file}: not a .npy array file")
-    return np.array(first_three_columns(file, array))
+    fh.seek(data_start)
+    body = FileBody(fh, file)
+    if len(body) < rows * columns * dtype.itemsize:
+        raise DataError(
+            f"{file}: the .npy header declares shape {shape} but the file holds "
+            f"{len(body)} bytes of data"
+        )
+    if fortran:  # column-major: the first three columns are the first 3·N values
+        data = np.frombuffer(body.read(0, 3 * rows * dtype.itemsize), dtype=dtype)
+        return data.reshape(3, rows).T.copy()
+    out = np.empty((rows, 3), dtype=dtype)
+    row_bytes = columns * dtype.itemsize
+    step = max(_NPY_BLOCK_BYTES // max(row_bytes, 1), 1)
+    for first in range(0, rows, step):
+        last = min(first + step, rows)
+        block = body.read(first * row_bytes, last * row_bytes)
+        out[first:last] = np.frombuffer(block, dtype=dtype).reshape(-1, columns)[:, :3]
+    return out

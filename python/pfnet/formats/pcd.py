@@ -89,16 +89,16 @@ def _read_pcd_body(file: Path, fh, header: list[str], body_line: int) -> np.ndar
             ]
         )
         check_body_span(file, dtype.itemsize * n_points, f"{n_points} PCD points")
-        body = map_rest(fh)
+        body = map_rest(fh, file)
         if len(body) < dtype.itemsize * n_points:
             raise DataError(
                 f"{file}: truncated PCD data: {n_points} points need "
                 f"{dtype.itemsize * n_points} bytes, found {len(body)}"
             )
-        table = np.frombuffer(body, dtype=dtype, count=n_points)
+        table = np.frombuffer(body.read(0, dtype.itemsize * n_points), dtype=dtype, count=n_points)
         points = float32_columns([_pcd_first(table[f"f{c}"]) for c in columns])
     else:
-        points = _read_pcd_compressed(file, map_rest(fh), dtypes, counts_i, n_points, columns)
+        points = _read_pcd_compressed(file, map_rest(fh, file), dtypes, counts_i, n_points, columns)
     return points[np.isfinite(points).all(axis=1)] if np.isnan(points).any() else points
 
 
@@ -139,7 +139,7 @@ MAX_PCD_UNPACKED = 1 << 31
 def _read_pcd_compressed(file, body, dtypes, counts, n_points, columns) -> np.ndarray:
     if len(body) < 8:
         raise DataError(f"{file}: truncated PCD binary_compressed data")
-    compressed, raw = (int(v) for v in np.frombuffer(body, "<u4", 2))
+    compressed, raw = (int(v) for v in np.frombuffer(body.read(0, 8), "<u4", 2))
     if len(body) < 8 + compressed:
         raise DataError(f"{file}: truncated PCD binary_compressed data")
     # binary_compressed stores the data field by field (all x, then all y, ...).
@@ -162,7 +162,7 @@ def _read_pcd_compressed(file, body, dtypes, counts, n_points, columns) -> np.nd
             f"times; point clouds do not compress beyond {MAX_PCD_COMPRESSION}"
         )
     try:  # in the Rust core: linear in the size, never beyond it
-        data = _core.lzf_decompress(np.frombuffer(body, np.uint8, compressed, 8), raw)
+        data = _core.lzf_decompress(np.frombuffer(body.read(8, 8 + compressed), np.uint8), raw)
     except GeometryError as err:
         raise DataError(f"{file}: corrupt PCD binary_compressed data ({err})") from None
     out = []

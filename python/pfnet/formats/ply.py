@@ -64,7 +64,7 @@ def read_ply(file: Path) -> np.ndarray:
             body_line = len(header) + 2  # after "ply" and the header's lines
             return _read_ply_ascii(file, fh, elements, vertex_index, body_line)
         endian = "<" if fmt == "binary_little_endian" else ">"
-        return _read_ply_binary(file, map_rest(fh), elements, vertex_index, endian)
+        return _read_ply_binary(file, map_rest(fh, file), elements, vertex_index, endian)
 
 
 def parse_header(file: Path, header: list[str]) -> tuple[list, str]:
@@ -191,7 +191,7 @@ def _read_ply_binary(file, body, elements, vertex_index: int, endian: str) -> np
                     f"{max(len(body) - offset, 0)} left"
                 )
             if is_vertex:
-                table = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
+                table = np.frombuffer(body.read(offset, offset + size), dtype=dtype, count=count)
                 return float32_columns([table["x"], table["y"], table["z"]])
             offset += size
             continue
@@ -216,7 +216,7 @@ def _read_ply_binary(file, body, elements, vertex_index: int, endian: str) -> np
         offset, starts = _walk_rows(file, body, name, count, layout, offset, record=is_vertex)
         check_body_span(file, offset, f"the PLY rows up to the end of element {name!r}")
         if is_vertex:
-            return _gather_columns(body, layout, starts, ("x", "y", "z"))
+            return _gather_columns(body.upto(offset), layout, starts, ("x", "y", "z"))
     raise DataError(f"{file}: PLY file has no vertex element")  # unreachable: checked above
 
 
@@ -241,10 +241,15 @@ def _row_layout(props, endian: str) -> list[_Run]:
     return layout
 
 
+# Bytes read at a time, doubling, while rows of variable size are walked.
+_WALK_CHUNK = 1 << 20
+
+
 def _walk_rows(file, body, name, count, layout, offset, *, record: bool):
     """The offset after ``count`` rows from ``offset``, and with ``record`` where each run of
     ``layout`` starts in every row (one int64 array per run)."""
-    view, end = memoryview(body), len(body)
+    end = len(body)
+    data = body.upto(min(offset + _WALK_CHUNK, end))
     starts = [array.array("q") for _ in layout] if record else []
     for _ in range(count):
         for k, (run, _, length, item) in enumerate(layout):
@@ -252,9 +257,11 @@ def _walk_rows(file, body, name, count, layout, offset, *, record: bool):
                 starts[k].append(offset)
             offset += run
             if length is not None:
-                if offset + length.size > end:
-                    raise DataError(f"{file}: truncated PLY data in element {name!r}")
-                n = length.unpack_from(view, offset)[0]
+                if offset + length.size > len(data):
+                    if offset + length.size > end:
+                        raise DataError(f"{file}: truncated PLY data in element {name!r}")
+                    data = body.upto(max(offset + length.size, 2 * len(data)))
+                n = length.unpack_from(data, offset)[0]
                 if n < 0:
                     raise DataError(f"{file}: negative list length {n} in element {name!r}")
                 offset += length.size + n * item
