@@ -16,18 +16,18 @@
 # (configs, logs, test scores) and the generators of the runs in EXPORT (default "A B") as
 # float16 model files (9.7 MB each: the artefact that would ship, not a training checkpoint),
 # of best.pt and the last weights (EXPORT_WHICH="best last"; at most 8 files come back).
-# The runs behind the README's GPU table (docs/small-data/gpu-D-*), one H200:
+# The runs behind the README's GPU table (results/small-data/gpu-D-*), one H200:
 #     bash benchmarks/gpu_recipe_runs.sh run 430
 #     RUNS="B2:16000:0.25:0 C2:8000:0.5:0 A2:8000:0.25:1" EXPORT="B2 A2" \
 #       bash benchmarks/gpu_recipe_runs.sh run 470
-# The shipped recipe's seed spread (issue #13; docs/small-data/gpu-proc-ft-seed*): its
+# The shipped recipe's seed spread (issue #13; results/small-data/gpu-proc-ft-seed*): its
 # procedural pretraining's best.pt copied to .gpu/init.pt after pack, then
 #     INIT=.gpu/init.pt RUNS="S1:8000:0.25:1:l1 S2:8000:0.25:2:l1 S3:8000:0.25:3:l1 \
 #       S4:8000:0.25:4:l1" EXPORT="S1 S2 S3 S4" EXPORT_WHICH=best bash benchmarks/gpu_recipe_runs.sh run 420
 # Its procedural pretraining at twice the steps, then the fine-tuning (mode pretrain, below):
 #     EXPORT="P F" EXPORT_WHICH=best bash benchmarks/gpu_recipe_runs.sh pretrain 420
-# The study with the recipe (pfnet reproduce, issue #13 item 7; docs/results and
-# docs/results/longer-runs), the second call with the device time left:
+# The study with the recipe (pfnet reproduce, issue #13 item 7; results/study and
+# results/study/longer-runs), the second call with the device time left:
 #     bash benchmarks/gpu_recipe_runs.sh study 555
 #     STEPS=10000 MODELS="pfnet-vanilla mr-cmlp cmlp mlp" RATIOS=0.25 JOBS=4 \
 #       bash benchmarks/gpu_recipe_runs.sh study 400
@@ -167,7 +167,7 @@ if [ "$mode" = runs ]; then
   # side by side, e.g. the runs its twice-the-steps test still lacks:
   #     STUDY_RUNS="mr-cmlp-25-20000steps-seed0 pfnet-50-20000steps-seed0" \
   #       bash benchmarks/gpu_recipe_runs.sh runs 500
-  # $OUT gets study-runs.tgz: each run's published files (docs/results/cpu-runs holds the
+  # $OUT gets study-runs.tgz: each run's published files (results/study/cpu-runs holds the
   # CPU's), or whatever of them there is, and every run's output.
   export OMP_NUM_THREADS=1
   left=$(( budget - ($(date +%s) - t0) - 60 ))  # scoring and packing after the training
@@ -192,7 +192,7 @@ if [ "$mode" = pretrain ]; then
   # seed SEED (default 0). Both are scored below; EXPORT="P F" EXPORT_WHICH=best brings back
   # their generators (P's: to fine-tune elsewhere if F did not finish). On an H200, P alone
   # took 356 s (22 ms a step), so P and F do not fit in one session's device time; the
-  # fine-tuning of docs/small-data/gpu-proc-pre-16000 ran on the CPU from P-best.safetensors.
+  # fine-tuning of results/small-data/gpu-proc-pre-16000 ran on the CPU from P-best.safetensors.
   log "procedural data"
   python3 -m pfnet.cli prepare procedural --count "${PROC_COUNT:-2000}" --pool 8192 \
     --out "$work/proc" > "$work/prepare.log" 2>&1 || { cat "$work/prepare.log"; exit 1; }

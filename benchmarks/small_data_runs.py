@@ -1,6 +1,6 @@
 """Training beside validation and test for finished runs: table rows and curves.
 
-    python benchmarks/small_data_runs.py docs/small-data/gpu-D-* --plot curves.png
+    python benchmarks/small_data_runs.py results/small-data/gpu-D-* --plot curves.png
 
 Each argument is a run folder holding ``config.json`` and ``log.jsonl`` of ``pfnet train``
 and, if scored, ``eval-test-best.json`` / ``eval-test-last.json`` (``pfnet evaluate --json``

@@ -40,8 +40,8 @@ def test_the_first_length_whose_twice_is_no_better_is_chosen(converged_study):
 
 
 def test_readme_section_is_the_scripts_output(converged_study):
-    """The README's section between the markers is what the published records give."""
-    assert converged_study.readme_section(ROOT / "README.md") == converged_study.section()
+    """The results page's section between the markers is what the published records give."""
+    assert converged_study.readme_section(ROOT / "docs" / "results.md") == converged_study.section()
 
 
 def test_a_readme_without_the_markers_is_refused_by_name(converged_study, tmp_path):

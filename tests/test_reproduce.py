@@ -27,7 +27,8 @@ from pfnet.study.runs import run_config, study_config
 from pfnet.training.config import TrainConfig
 
 ROOT = Path(__file__).resolve().parent.parent
-PUBLISHED = ROOT / "docs" / "results"
+PUBLISHED = ROOT / "results" / "study"
+RESULTS_PAGE = ROOT / "docs" / "results.md"  # the study's section, between its markers
 
 
 def test_study_runs_are_the_ablation_then_the_ratios_seed_by_seed():
@@ -447,10 +448,10 @@ def test_reproduce_length_and_job_options_are_checked(tmp_path, capsys):
 
 @pytest.mark.skipif(not (PUBLISHED / "results.json").is_file(), reason="no published results")
 def test_readme_results_are_the_published_run():
-    """The README's numbers are generated from docs/results, whose files agree; the
-    10,000-step runs of docs/results/longer-runs are the README's twice-the-steps table."""
+    """The results page's numbers are generated from results/study, whose files agree; the
+    10,000-step runs of results/study/longer-runs are the page's twice-the-steps table."""
     results = json.loads((PUBLISHED / "results.json").read_text())
-    assert readme_section(ROOT / "README.md") == render_report(results, "docs/results/").strip("\n")
+    assert readme_section(RESULTS_PAGE) == render_report(results, "results/").strip("\n")
     for folder in (PUBLISHED, PUBLISHED / "longer-runs"):
         record = read_results(folder / "results.json")  # checked whole, as --report-only does
         assert (folder / "results.md").read_text() == render_report(record)
@@ -459,7 +460,7 @@ def test_readme_results_are_the_published_run():
     # The README's table of 5,000 against 10,000 steps: the two records' validation gains.
     longer = read_results(PUBLISHED / "longer-runs" / "results.json")
     by_name = {s["name"]: s for s in results["settings"]}
-    readme = (ROOT / "README.md").read_text()
+    readme = RESULTS_PAGE.read_text()
     for setting in longer["settings"]:
         before = by_name[setting["name"].replace("10000steps", "5000steps")]
         a, b = before["best_val_cd_l2"], setting["best_val_cd_l2"]
@@ -468,8 +469,8 @@ def test_readme_results_are_the_published_run():
 
 @pytest.mark.skipif(not (PUBLISHED / "cpu-runs").is_dir(), reason="no runs of the CPU")
 def test_readme_twice_the_steps_rows_of_the_cpu_runs_are_their_files():
-    """The runs benchmarks/study_run.py trained on a CPU (docs/results/cpu-runs): each has
-    the study's configuration, its files agree with its record, and the README's row is its
+    """The runs benchmarks/study_run.py trained on a CPU (results/study/cpu-runs): each has
+    the study's configuration, its files agree with its record, and the results page's row is its
     validation gain over the run of half its length (published in either record or here)."""
     records = {
         run["name"]: run
@@ -480,7 +481,7 @@ def test_readme_twice_the_steps_rows_of_the_cpu_runs_are_their_files():
     assert cpu
     for folder in cpu:
         records[folder.name] = json.loads((folder / "record.json").read_text())
-    readme = (ROOT / "README.md").read_text()
+    readme = RESULTS_PAGE.read_text()
     base = study_config("small")
     for folder in cpu:
         run = records[folder.name]

@@ -17,7 +17,7 @@ from pfnet.study.record import check_results, read_results
 from pfnet.study.report import MAX_README_BYTES
 from pfnet.study.runs import MAX_RUNS
 
-RESULTS = Path(__file__).resolve().parent.parent / "docs" / "results"
+RESULTS = Path(__file__).resolve().parent.parent / "results" / "study"
 needs_results = pytest.mark.skipif(
     not (RESULTS / "results.json").is_file(), reason="no published results"
 )

@@ -52,8 +52,9 @@ def test_a_run_with_a_weight_average_gets_a_row_for_its_live_weights(
 
 
 def _readme_row(label: str) -> str:
+    """The row of the recipe page (docs/recipes.md) whose first cell is ``label``."""
     root = Path(__file__).resolve().parent.parent
-    readme = (root / "README.md").read_text(encoding="utf-8")
+    readme = (root / "docs" / "recipes.md").read_text(encoding="utf-8")
     rows = [line.replace("**", "") for line in readme.splitlines()]
     return next(line for line in rows if line.startswith(f"| {label} |"))
 
@@ -75,7 +76,7 @@ def _readme_row(label: str) -> str:
 def test_readme_procedural_pretraining_rows_are_their_files(small_data_runs, folder, label):
     """The table under *Pretraining on procedural shapes*: each row's figures are what the
     script computes from the run's committed files (its name and loss columns aside)."""
-    run = Path(__file__).resolve().parent.parent / "docs" / "small-data" / folder
+    run = Path(__file__).resolve().parent.parent / "results" / "small-data" / folder
     figures = small_data_runs.table_row(small_data_runs.summarise(run)).split(" | ", 3)[3]
     published = _readme_row(label).split(" | ", 2)[2].replace("+", "")
     assert published == figures
@@ -91,7 +92,7 @@ SEED_ROWS = [
 def test_readme_seed_rows_are_their_files(small_data_runs, folder, label):
     """The table under *Seven seeds of the shipped recipe*: each row's figures (training
     onwards) are what the script computes from the run's committed files."""
-    run = Path(__file__).resolve().parent.parent / "docs" / "small-data" / folder
+    run = Path(__file__).resolve().parent.parent / "results" / "small-data" / folder
     figures = small_data_runs.table_row(small_data_runs.summarise(run)).split(" | ", 3)[3]
     assert _readme_row(label).split(" | ", 1)[1] == figures
 
@@ -100,7 +101,7 @@ def test_readme_seed_means_are_those_of_the_seven_runs(small_data_runs):
     """The table's last row: mean ± sample standard deviation of the seven runs."""
     import statistics
 
-    root = Path(__file__).resolve().parent.parent / "docs" / "small-data"
+    root = Path(__file__).resolve().parent.parent / "results" / "small-data"
     runs = [small_data_runs.summarise(root / folder) for folder, _ in SEED_ROWS]
 
     def spread(key: str, digits: int) -> str:

@@ -507,7 +507,7 @@ def test_a_missing_torch_is_one_line_and_other_missing_modules_stay_visible(
 # ----------------------------------------------------------------------------------------
 # The sixth audit's variants (a study's forged results).
 
-RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results"
+RESULTS = Path(__file__).resolve().parents[2] / "results" / "study"
 
 
 @pytest.mark.skipif(not (RESULTS / "results.json").is_file(), reason="no published results")
