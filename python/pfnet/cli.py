@@ -24,6 +24,7 @@ from collections.abc import Sequence
 
 from pfnet import errors
 from pfnet.errors import PfnetError
+from pfnet.paths import tolerant_streams
 
 # name -> module implementing HELP / add_arguments / run
 COMMANDS: dict[str, str] = {
@@ -68,7 +69,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module_name in COMMANDS.items():
         module = importlib.import_module(module_name)
-        cmd = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        cmd = sub.add_parser(
+            name,
+            help=module.HELP,
+            description=module.HELP,
+            epilog=getattr(module, "EPILOG", None),
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         module.add_arguments(cmd)
         cmd.set_defaults(_run=module.run)
     return parser
@@ -81,6 +88,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         Exception: Anything but :data:`USER_ERRORS` and a missing PyTorch: a bug, shown
             with its traceback.
     """
+    # a path whose bytes are not UTF-8 is printed escaped, never a UnicodeEncodeError
+    with tolerant_streams():
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except KeyboardInterrupt:  # while the command modules load

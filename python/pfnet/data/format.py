@@ -474,7 +474,9 @@ def write_dataset(
             write_npz(tmp / f"{split}.npz", arrays)
         for file_name, side_arrays in (side_files or {}).items():
             write_npz(tmp / file_name, side_arrays)
-        text = json.dumps(manifest, indent=2, ensure_ascii=False) + "\n"
+        # ASCII JSON: a file name whose bytes are not UTF-8 is kept as "\\udce9", which reads
+        # back to the same name (a UTF-8 file cannot hold it; issue 36)
+        text = json.dumps(manifest, indent=2) + "\n"
         (tmp / MANIFEST_NAME).write_text(text, encoding="utf-8")
         if path.exists():
             os.replace(path, old)

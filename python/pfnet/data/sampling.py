@@ -27,7 +27,8 @@ def shape_rng(seed: int, key: str) -> np.random.Generator:
     Returns:
         A PCG64 generator.
     """
-    digest = hashlib.blake2b(key.encode("utf-8"), digest_size=16).digest()
+    # surrogateescape: a file name whose bytes are not UTF-8 seeds from those bytes (issue 36)
+    digest = hashlib.blake2b(key.encode("utf-8", "surrogateescape"), digest_size=16).digest()
     words = np.frombuffer(digest, dtype="<u4").tolist()
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, *words])))
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from pfnet.data.sources import Geometry, Scan, ShapeItem, safe_name, unique_names
 from pfnet.errors import DataError
 from pfnet.formats.meshes import check_mesh_file
+from pfnet.paths import shown, walk_files
 
 __all__ = ["CLOUD_SUFFIXES", "MESH_SUFFIXES", "load_mesh_file", "looks_like", "scan"]
 
@@ -22,13 +23,9 @@ CLOUD_SUFFIXES: tuple[str, ...] = (".xyz", ".pts", ".npy", ".pcd")
 
 def _shape_files(folder: Path) -> list[Path]:
     suffixes = MESH_SUFFIXES + CLOUD_SUFFIXES
-    return sorted(
-        path
-        for path in folder.rglob("*")
-        if path.suffix.lower() in suffixes
-        and path.is_file()
-        and not any(part.startswith(".") for part in path.relative_to(folder).parts)
-    )
+    # walked iteratively to a bounded depth (rglob died in a RecursionError 1,500 deep);
+    # hidden files and folders are left out
+    return [path for path in walk_files(folder) if path.suffix.lower() in suffixes]
 
 
 def looks_like(root: Path) -> bool:
@@ -102,7 +99,22 @@ def load_mesh_file(path: str) -> Geometry:
     check_mesh_file(Path(path))
     suffix = Path(path).suffix.lower()
     options = {"skip_materials": True} if suffix == ".obj" else {}
-    mesh = trimesh.load(path, force="mesh", process=False, **options)
+    if shown(path) != str(path):
+        # a name whose bytes are not UTF-8: trimesh names the geometry after the file and
+        # hashes that name as UTF-8 (UnicodeEncodeError), so it gets the bytes, not the name
+        from trimesh.resolvers import FilePathResolver
+
+        with open(path, "rb") as fh:
+            mesh = trimesh.load(
+                fh,
+                file_type=suffix[1:],
+                force="mesh",
+                process=False,
+                resolver=FilePathResolver(str(Path(path).parent)),
+                **options,
+            )
+    else:
+        mesh = trimesh.load(path, force="mesh", process=False, **options)
     faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     if suffix == ".ply" and len(faces) == 0:
         from pfnet.io import read_point_cloud
