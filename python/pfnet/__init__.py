@@ -9,7 +9,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pfnet import geometry
 
 try:
-    __version__ = version("pfnet")
+    __version__ = version("pfnet-completion")  # the distribution's name ("pfnet" is taken)
 except PackageNotFoundError:  # running from a source tree without an install
     __version__ = "0.0.0"
 

@@ -109,7 +109,8 @@ def _main(argv: Sequence[str] | None) -> int:
             raise  # a missing module of our own is a bug: show it
         print(
             f"pfnet {args.command}: error: this command needs PyTorch, which is not "
-            "installed: pip install 'pfnet[train]'",
+            "installed: pip install torch (the [train] extra of pfnet-completion; CPU only: add "
+            "--index-url https://download.pytorch.org/whl/cpu)",
             file=sys.stderr,
         )
         return 1

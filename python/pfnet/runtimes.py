@@ -3,9 +3,9 @@
 ``pfnet complete`` and ``pfnet predict`` take ``--runtime auto|torch|onnx``:
 
 * ``torch`` loads a checkpoint, model file or shipped model with
-  :func:`pfnet.checkpoint.load_checkpoint` (needs ``pfnet[train]``).
+  :func:`pfnet.checkpoint.load_checkpoint` (needs the ``[train]`` extra).
 * ``onnx`` runs an ONNX file written by ``pfnet export`` (:mod:`pfnet.onnx_export`) on ONNX
-  Runtime (``pfnet[infer]``, no torch): a ``.onnx`` path, or a model file with its ONNX export
+  Runtime (the ``[infer]`` extra, no torch): a ``.onnx`` path, or a model file with its ONNX export
   beside it (``NAME.onnx`` next to ``NAME.safetensors``, as the shipped models have).
 * ``auto`` (the default): an ``.onnx`` path runs on ONNX Runtime; anything else on PyTorch
   when it is installed, else on ONNX Runtime.
@@ -34,7 +34,10 @@ RUNTIME_HELP = (
     "auto: PyTorch if installed, else ONNX Runtime (an .onnx --checkpoint always runs on ONNX "
     "Runtime); torch; onnx (default: auto)"
 )
-INFER_EXTRA = "pip install 'pfnet[infer]'"
+# The hint names the package itself: it works however pfnet was installed (from PyPI as
+# pfnet-completion, from a clone); "pip install 'pfnet[...]'" would fetch an unrelated
+# project that holds the name pfnet on PyPI.
+INFER_EXTRA = "pip install onnxruntime (the [infer] extra of pfnet-completion)"
 ONNX_SUFFIX = ".onnx"
 
 

@@ -10,7 +10,7 @@ One sample is shown at a time because every 3D scene is a WebGL context and brow
 only about 16 alive: a 24-panel page (8 samples x 3) loses its first panels. The file
 needs no network when it is opened (plotly.js, ~4.7 MB, is inside it).
 
-Needs plotly (``pip install 'pfnet[viewer]'``).
+Needs plotly (``pip install plotly``, the ``[viewer]`` extra).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 
 from pfnet.errors import ConfigError
 
-VIEWER_EXTRA = "pip install 'pfnet[viewer]'"
+VIEWER_EXTRA = "pip install plotly (the [viewer] extra of pfnet-completion)"
 PANEL_PIXELS = 420
 """Width and height of one panel in the page."""
 

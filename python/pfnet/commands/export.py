@@ -13,7 +13,7 @@ from pfnet.errors import ConfigError
 from pfnet.shipped import CHECKPOINT_HELP
 
 HELP = "Export a trained generator to ONNX, to complete scans with ONNX Runtime (no PyTorch)."
-EXPORT_EXTRA = "pip install 'pfnet[export]'"
+EXPORT_EXTRA = "the [export] extra of pfnet-completion"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,7 +40,9 @@ def run(args: argparse.Namespace) -> int:
     refuse_input_overwrite([args.out], [source], flag="--out")
     missing = [name for name in ("torch", "onnx", "onnxscript") if not has_module(name)]
     if missing:
-        raise MissingDependency(f"export needs {', '.join(missing)}: {EXPORT_EXTRA}")
+        raise MissingDependency(
+            f"export needs {', '.join(missing)}: pip install {' '.join(missing)} ({EXPORT_EXTRA})"
+        )
     from pfnet.onnx_export import TOLERANCE, export_onnx
 
     result = export_onnx(source, args.out, check=not args.no_check)

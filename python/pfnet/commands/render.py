@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         help="interactive HTML file to write (rotatable, one toggle per layer; needs "
-        "pfnet[viewer]); with --out, both are written",
+        "pip install plotly); with --out, both are written",
     )
     parser.add_argument(
         "--role",
