@@ -116,7 +116,7 @@ def test_every_command_is_summarised_as_a_sentence_in_pfnet_help():
 
 
 def test_no_module_of_the_package_is_over_500_lines():
-    """README's promise to a newcomer (*Development*): every room is small enough to read."""
+    """docs/architecture.md's promise to a newcomer: every room is small enough to read."""
     from pathlib import Path
 
     import pfnet

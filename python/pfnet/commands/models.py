@@ -33,11 +33,7 @@ def run(args: argparse.Namespace) -> int:
         default = "  (default)" if model.name == DEFAULT_MODEL else ""
         print(f"{model.name}{default}")
         print(f"  {card.get('summary', '')}".rstrip())
-        print(
-            f"  network   {config.get('model')}, width {config.get('width')}, "
-            f"{config.get('n_points')} points in, predicts the missing "
-            f"{config.get('missing_ratio', 0):.0%}; {model.size_mb:.1f} MB"
-        )
+        print(f"  network   {_network_line(config)}; {model.size_mb:.1f} MB")
         test = card.get("test")
         if isinstance(test, dict):
             print(
@@ -47,3 +43,19 @@ def run(args: argparse.Namespace) -> int:
             )
         print(f"  use       pfnet complete SCAN.ply --checkpoint {model.name} --out DIR")
     return 0
+
+
+def _network_line(config: dict) -> str:
+    """What the network takes and gives, as the model card in the docs says it: the partial
+    cloud's size in, the missing points out (``n_points`` is the complete cloud's size)."""
+    from pfnet.data.crops import missing_count
+
+    n_points, ratio = config.get("n_points"), config.get("missing_ratio")
+    head = f"{config.get('model')}, width {config.get('width')}"
+    if not isinstance(n_points, int) or not isinstance(ratio, float):
+        return head
+    m = missing_count(n_points, ratio)
+    return (
+        f"{head}, {n_points - m:,} points in, the missing {m:,} out "
+        f"({ratio:.0%} of {n_points:,}-point clouds)"
+    )
