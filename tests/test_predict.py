@@ -180,7 +180,7 @@ def test_two_runs_into_one_folder_never_mix(tmp_path, tiny_dataset, checkpoint, 
         capsys.readouterr()
         assert main([*args, "--device", "cpu"]) == 1
         err = capsys.readouterr().err
-        assert f"another pfnet predict is writing into {out}; wait for it" in err
+        assert f"writing predictions into {out.resolve()}: it is in use by pid {holder.pid}" in err
     finally:
         holder.kill()
         holder.communicate()  # reaps it and closes its pipe

@@ -120,12 +120,17 @@ def write_completion(out_dir: Path, source: Path, cloud: np.ndarray, missing: np
     )
 
 
-def check_outputs(inputs: list[Path], out_dir: Path) -> list[Path]:
+def check_outputs(inputs: list[Path], out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     """The inputs to complete (each once), after checking that their outputs are safe to write.
 
+    An output file that exists is replaced only if pfnet wrote it (:func:`written_by_pfnet`:
+    an earlier run's, completed again) or with ``overwrite``: a user's ``scan_completed.ply``
+    beside ``scan.xyz`` is never replaced unasked.
+
     Raises:
-        ConfigError: Two inputs would write the same files, ``out_dir`` is a file, or an
-            output would replace an input.
+        ConfigError: Two inputs would write the same files, ``out_dir`` is a file, an
+            output would replace an input, or a file pfnet did not write (without
+            ``overwrite``), naming it.
     """
     from pfnet.io import refuse_input_overwrite
 
@@ -143,10 +148,29 @@ def check_outputs(inputs: list[Path], out_dir: Path) -> list[Path]:
         raise ConfigError(f"output folder {out_dir} is a file; name a folder for the outputs")
     unique = list(dict.fromkeys(inputs))
     # `complete a.ply a_missing.ply --out .` would replace the user's a_missing.ply.
-    refuse_input_overwrite(
-        [output for path in unique for output in output_paths(out_dir, path)], unique
-    )
+    outputs = [output for path in unique for output in output_paths(out_dir, path)]
+    refuse_input_overwrite(outputs, unique)
+    for output in outputs:
+        if not overwrite and (output.exists() or output.is_symlink()):
+            if not written_by_pfnet(output):
+                raise ConfigError(
+                    f"{output} exists and pfnet did not write it; pass --overwrite to replace "
+                    "it, or name another --out"
+                )
     return unique
+
+
+def written_by_pfnet(path: Path) -> bool:
+    """Whether ``path`` is a PLY file as :func:`pfnet.io.write_ply` writes it (its header's
+    ``comment written by pfnet``), not a link: one that a later run may replace."""
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(128)
+    except OSError:
+        return False
+    return head.startswith(b"ply\nformat binary_little_endian 1.0\ncomment written by pfnet\n")
 
 
 def complete_files(
@@ -176,12 +200,16 @@ def complete_files(
     """
     if batch_size < 1:
         raise ConfigError(f"batch size must be at least 1, got {batch_size}")
+    from pfnet.locks import folder_lock
+
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
-        done, failed = _complete_batches(
-            model, inputs, out_dir, batch_size, device, on_skip, source
-        )
+        # one complete at a time in a folder: two once interleaved their files silently
+        with folder_lock(out_dir, "writing completions into"):
+            done, failed = _complete_batches(
+                model, inputs, out_dir, batch_size, device, on_skip, source
+            )
     except (KeyboardInterrupt, DataError):  # Ctrl-C, or a model whose output is refused
         if created and not any(out_dir.iterdir()):
             out_dir.rmdir()

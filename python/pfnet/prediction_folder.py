@@ -176,6 +176,7 @@ def open_prediction_folder(
             f"another pfnet predict wrote into {out} while this one ran; this run wrote "
             "nothing: run it again when the other has finished"
         )
+    _remove_interrupted_writes(out, categories)
     for path in replaced:  # each file, then its folder, as check_prediction_folder found them
         if not _plain_folder(path):
             path.unlink(missing_ok=True)
@@ -202,6 +203,19 @@ def open_prediction_folder(
         (out / category).mkdir(exist_ok=True)
 
 
+def _remove_interrupted_writes(out: Path, categories: list[str]) -> None:
+    """Remove the temporary files of writes a killed run left (``.name.<12 hex>.tmp.npy``,
+    ``.predictions.<12 hex>.tmp.json``, as :func:`pfnet.io.atomic_path` names them): the folder
+    is locked, so no run is writing them now, and a re-run leaves no hidden files behind."""
+    folders = [(out, RECORD_TMP)] + [(out / c, PREDICTION_TMP) for c in categories]
+    for folder, pattern in folders:
+        if not _plain_folder(folder):
+            continue
+        for entry in folder.iterdir():
+            if pattern.fullmatch(entry.name) and plain_file(entry):
+                entry.unlink(missing_ok=True)
+
+
 # The record each prediction folder had when checked, and the folders this process writes
 # into, each locked (flock on the folder) from open_prediction_folder to write_record: two
 # predict runs into one folder once both reported success over a mix of their files.
@@ -219,20 +233,13 @@ def _record_stamp(out: Path) -> tuple[int, int] | None:
 
 
 def _lock(out: Path) -> None:
-    """Take the prediction folder ``out`` for this run, or refuse if another run has it."""
-    import fcntl
+    """Take the prediction folder ``out`` for this run, or refuse if another run (a predict
+    writing it, an evaluate reading it) has it, naming that process (:mod:`pfnet.locks`)."""
+    from pfnet.locks import take
 
     key = out.resolve()
     _unlock(out)  # a run of this process that failed half-way
-    fd = os.open(key, os.O_RDONLY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(fd)
-        raise DataError(
-            f"another pfnet predict is writing into {out}; wait for it, or name another folder"
-        ) from None
-    _LOCKS[key] = fd
+    _LOCKS[key] = take(key, "writing predictions into")
 
 
 def _unlock(out: Path) -> None:
@@ -262,7 +269,7 @@ def write_record(
     and last the files the run wrote (:func:`~pfnet.prediction_record.run_files`; which
     ``--overwrite`` may remove).
     """
-    from pfnet.data.format import split_digest
+    from pfnet.data.format import loaded_split_digest
     from pfnet.shipped import describe
 
     info = {
@@ -270,7 +277,8 @@ def write_record(
         "checkpoint": describe(checkpoint),
         "data": str(Path(data_dir).resolve()),
         "split": split,
-        "split_sha256": split_digest(data_dir, split),  # evaluate refuses other clouds
+        # of the bytes predict read, when it read them: evaluate refuses other clouds
+        "split_sha256": loaded_split_digest(data_dir, split),
         "categories": sorted(files["names"]),
         "protocol": protocol,
         "model": model,

@@ -24,6 +24,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
     parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace output files in --out that pfnet did not write (a file of an earlier "
+        "pfnet complete is always replaced)",
+    )
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)
     parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
@@ -38,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the outputs")
-    inputs = check_outputs(args.inputs, args.out)
+    inputs = check_outputs(args.inputs, args.out, overwrite=args.overwrite)
     loaded = load_generator(args.checkpoint, runtime=args.runtime, device=args.device)
     model, device = loaded.model, loaded.device
     done, failed = complete_files(

@@ -105,7 +105,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed)."""
+    """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed).
+
+    The prediction folder and the data set are held (shared locks, :mod:`pfnet.locks`)
+    while they are read: a ``predict`` or ``prepare`` rewriting them meanwhile is refused,
+    never scored as a mix of two runs.
+    """
+    from pfnet.locks import reading
+
+    with reading(args.pred, "scoring"), reading(args.data, "reading"):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from pfnet.gallery import check_gallery_options
     from pfnet.io import check_report_path
     from pfnet.metrics import summarize

@@ -83,6 +83,14 @@ def run(args: argparse.Namespace) -> int:
     if (args.out / "last.pt").is_file() or (args.out / "best.pt").is_file():
         raise ConfigError(f"--out {args.out} is a training run; name another folder")
     _check_gallery(args)
+    from pfnet.locks import reading
+
+    # the data set is held while it is read: a prepare --overwrite meanwhile is refused
+    with reading(args.data, "predicting from"):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.protocol != "pfnet":
         return _run_benchmark(args)
     info = predict_split(

@@ -33,7 +33,7 @@ MAX_POINTS_COMPRESSION = 16
 MAX_NAME_CHARS = 200
 
 
-def check_members(path: Path, rows: int | None, points: int | None) -> None:
+def check_members(path: Path, rows: int | None, points: int | None, *, source=None) -> None:
     """Check every ``.npy`` member's declared size against its stored size before loading.
 
     A member whose header claims 10^12 points would make numpy try to allocate terabytes.
@@ -41,10 +41,11 @@ def check_members(path: Path, rows: int | None, points: int | None) -> None:
     against its uncompressed size, which the zip directory records, and the coordinates
     against :data:`MAX_POINTS_COMPRESSION`. Every member must hold the same number of
     shapes (the manifest's, when it records one), so the names cannot outgrow the points.
+    ``source``, an open file of ``path``, is read instead of opening ``path`` again.
     """
     shapes: dict[str, tuple[int, ...]] = {}
     needed = 0
-    with zipfile.ZipFile(path) as archive:
+    with zipfile.ZipFile(path if source is None else source) as archive:
         for info in archive.infolist():
             if info.filename not in MEMBERS:  # numpy would read a member "points" unchecked
                 raise DataError(

@@ -17,6 +17,7 @@ time is spent in training and validation steps.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
@@ -32,6 +33,7 @@ from pfnet.checkpoint import read_checkpoint
 from pfnet.data.augment import augmentation_for
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import atomic_path, refuse_overlap
+from pfnet.locks import writing
 from pfnet.processes import ignore_stop_signals, start_helpers
 from pfnet.training import distributed
 from pfnet.training.batches import CompletionCollate, EpochBatches
@@ -94,17 +96,24 @@ def train(
     init = [config.init_from] if config.init_from and Path(config.init_from).exists() else []
     inputs = [data_dir, *([val_data] if val_data else []), *init]
     refuse_overlap(out_dir, inputs, flag="run folder")
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ConfigError(f"run folder {out_dir} exists and is not a folder")
     context = distributed.setup(device)
     finished = False
     try:
-        val_dir = None if val_data is None else Path(val_data)
-        trainer = Trainer(
-            config, Path(data_dir), Path(out_dir), context, resume=resume, val_dir=val_dir
-        )
-        show = sys.stderr.isatty() if progress is None else progress
-        summary = trainer.run(progress=show and context.is_main)
-        finished = True
-        return summary
+        with contextlib.ExitStack() as held:
+            # one run at a time in a run folder (a second train, or a --resume of a run still
+            # going, is refused naming the first), held from before the resume checks
+            if context.is_main:
+                held.enter_context(writing(out_dir, "training into"))
+            val_dir = None if val_data is None else Path(val_data)
+            trainer = Trainer(
+                config, Path(data_dir), Path(out_dir), context, resume=resume, val_dir=val_dir
+            )
+            show = sys.stderr.isatty() if progress is None else progress
+            summary = trainer.run(progress=show and context.is_main)
+            finished = True
+            return summary
     finally:
         distributed.teardown(context, finished=finished)
 
