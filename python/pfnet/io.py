@@ -7,8 +7,10 @@
 * ``.ply`` — ``ascii``, ``binary_little_endian`` or ``binary_big_endian``; the ``x``, ``y``,
   ``z`` properties of the ``vertex`` element (any numeric type); faces and every other
   element or property are ignored.
-* ``.xyz``, ``.pts``, ``.txt`` — one point per line, whitespace- or comma-separated, the
-  first three columns are x, y, z. Blank lines and lines starting with ``#`` or ``//`` are
+* ``.xyz``, ``.pts``, ``.txt`` — one point per line, separated by whitespace, commas or
+  semicolons (values with decimal commas, ``10,1257 19,7358 31,9213``, are read as
+  decimals), the first three columns are x, y, z unless a line of names orders them.
+  Blank lines and lines starting with ``#`` or ``//`` are
   skipped, as are a first line holding only the point count (the Leica ``.pts`` header) and
   a first line of column names (``x,y,z``).
 * ``.pcd`` — ``DATA ascii``, ``binary`` or ``binary_compressed``; the ``x``, ``y``, ``z``
@@ -262,19 +264,23 @@ def write_ply(
             fh.write(vertex.tobytes())
 
 
-def read_point_cloud(path: str | os.PathLike[str]) -> np.ndarray:
+def read_point_cloud(path: str | os.PathLike[str], *, keep_float64: bool = False) -> np.ndarray:
     """Read a point cloud file into a float32 ``(N, 3)`` array.
 
     Args:
         path: A ``.npy``, ``.ply``, ``.xyz``, ``.pts``, ``.txt`` or ``.pcd`` file (see the
             module docstring for what each may hold).
+        keep_float64: Return float64 where the file holds float64 or text (a survey or LiDAR
+            scan in UTM coordinates: 512,345.0 and 512,345.1 are one float32), float32
+            otherwise.
 
     Returns:
-        float32 ``(N, 3)`` array of x, y, z, ``N >= 1``, all finite.
+        float32 ``(N, 3)`` array of x, y, z, ``N >= 1``, all finite (float64 as told).
 
     Raises:
         DataError: Naming ``path`` and the reason: not found, unknown suffix, unreadable or
-            malformed, no points, or NaN/inf coordinates.
+            malformed, no points, NaN/inf coordinates, or distinct points that float32 makes
+            one (far from the origin), which the message says.
     """
     file = Path(path)
     suffix = file.suffix.lower()
@@ -317,8 +323,12 @@ def read_point_cloud(path: str | os.PathLike[str]) -> np.ndarray:
         # The readers' single boundary: whatever hostile bytes make a parser raise is a
         # malformed file, named, so that batch commands skip it and go on.
         raise DataError(f"{file}: malformed {suffix[1:]} file ({err})") from None
+    wide = np.asarray(points).dtype == np.float64
+    read = points
     with np.errstate(over="ignore", invalid="ignore"):
-        points = np.ascontiguousarray(points, dtype=np.float32)
+        points = np.ascontiguousarray(
+            points, dtype=np.float64 if keep_float64 and wide else np.float32
+        )
     if points.shape[0] == 0:
         raise DataError(f"{file}: the file holds no points")
     if not np.isfinite(points).all():
@@ -329,4 +339,22 @@ def read_point_cloud(path: str | os.PathLike[str]) -> np.ndarray:
             f"{file}: coordinates beyond ±{MAX_COORDINATE:g}, which no distance computation "
             "in float32 survives; scale the cloud down"
         )
+    if wide and points.dtype == np.float32 and len(points) > 1:
+        _refuse_collapse(file, np.asarray(read, dtype=np.float64), points)
     return points
+
+
+def _refuse_collapse(file: Path, read: np.ndarray, points: np.ndarray) -> None:
+    """Refuse float64 points that are apart but one point in float32 (every point ``2^-24``
+    of its distance from the origin away from the next float32): said so, never reported
+    later as a cloud whose points all coincide."""
+    if np.ptp(points, axis=0).max() > 0:
+        return
+    extent = float(np.ptp(read, axis=0).max())
+    if extent > 0:
+        offset = float(np.abs(read).max())
+        raise DataError(
+            f"{file}: the points span {extent:.6g} but lie {offset:.6g} from the origin, "
+            "where float32 cannot tell them apart; subtract an offset (a survey origin) "
+            "before saving, or read the file in float64"
+        )

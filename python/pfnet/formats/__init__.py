@@ -51,12 +51,19 @@ def check_point_count(file: Path, count: int) -> None:
 
 
 def float32_columns(columns: list[np.ndarray]) -> np.ndarray:
-    """The columns side by side as one float32 ``(N, k)`` array, converted one column at a time.
+    """The columns side by side as one ``(N, k)`` array, converted one column at a time:
+    float32, or float64 when a column holds more digits than float32 keeps (float64, 32- and
+    64-bit integers, text parsed as float64), which ``read_point_cloud`` keeps when asked.
 
-    No float64 copy of the whole cloud is made; values beyond float32's range become ``inf``,
+    No float64 copy of a float32 cloud is made; values beyond float32's range become ``inf``,
     which ``read_point_cloud`` then refuses by name.
     """
-    out = np.empty((len(columns[0]), len(columns)), dtype=np.float32)
+    wide = any(
+        (c.dtype.kind == "f" and c.dtype.itemsize >= 8)
+        or (c.dtype.kind in "iu" and c.dtype.itemsize >= 4)
+        for c in columns
+    )
+    out = np.empty((len(columns[0]), len(columns)), dtype=np.float64 if wide else np.float32)
     with np.errstate(over="ignore", invalid="ignore"):
         for k, column in enumerate(columns):
             out[:, k] = column

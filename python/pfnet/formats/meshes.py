@@ -91,6 +91,9 @@ def check_mesh_file(file: Path) -> None:
     with open(file, "rb") as fh:
         if suffix in _TEXT_SUFFIXES:
             _check_lines(fh, file)
+            if suffix == ".obj":
+                fh.seek(0)
+                _check_obj_vertices(fh, file)
         elif suffix == ".ply":
             _check_ply(fh, file, size)
         elif suffix == ".stl":
@@ -127,6 +130,25 @@ def _check_lines(fh, file: Path, first_number: int = 1) -> int:
                 "(save large meshes as binary PLY or STL)"
             )
     return lines + (offset > start)  # a last line without a line end
+
+
+def _check_obj_vertices(fh, file: Path) -> None:
+    """Refuse an OBJ whose ``v`` lines hold different numbers of values: trimesh reshapes
+    them all to one width, so ``v 1 2 3`` beside ``v 1 2 3 0.5 0.5 0.5`` became wrong
+    vertices, stored without a word. Names the first line that differs."""
+    width = first = None
+    for number, raw in enumerate(fh, start=1):
+        if not raw.startswith((b"v ", b"v\t")):
+            continue
+        values = len(raw.split(b"#", 1)[0].split()) - 1
+        if width is None:
+            width, first = values, number
+        elif values != width:
+            raise DataError(
+                f"{file}: line {number} is a vertex of {values} values, line {first} one of "
+                f"{width}; an OBJ's vertex lines must all have one width (x y z, optionally "
+                "w or r g b)"
+            )
 
 
 def _check_ply(fh, file: Path, size: int) -> None:
