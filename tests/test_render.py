@@ -165,3 +165,82 @@ def test_row_label_fits_beside_its_row():
     assert lines[0] == "chair/" and all(len(line) <= 25 for line in lines)
     assert "".join(lines) == long
     assert row_label("scan.ply", 1.7, 8) == "scan.ply"
+
+
+def _cells(image: np.ndarray, rows: int, cols: int, panel: float = 2.2) -> dict:
+    """The pixels of each (row, column) panel of a gallery drawn with one view and no title
+    (0.5 inch of row labels on the left, 0.4 inch of column titles above)."""
+    height, width = image.shape[:2]
+    inch_x, inch_y = width / (panel * cols + 0.6), height / (panel * rows + 0.4)
+    cells = {}
+    for r in range(rows):
+        for c in range(cols):
+            x0, y0 = int((0.5 + c * panel * 1.0) * inch_x), int((0.4 + r * panel) * inch_y)
+            cells[r, c] = image[y0 : y0 + int(panel * inch_y), x0 : x0 + int(panel * inch_x)]
+    return cells
+
+
+def test_render_draws_a_completed_file_in_its_own_colours_not_as_ground_truth(tmp_path, sphere):
+    """`pfnet render x_completed.ply` (grey scan, yellow prediction, as `pfnet complete` writes
+    it) draws those colours under "completion", not everything blue under "ground truth"."""
+    from pfnet.completion import write_completion
+    from pfnet.rendering import own_color_panel
+
+    scan, missing = sphere[sphere[:, 0] < 0.5], sphere[sphere[:, 0] >= 0.5]
+    write_completion(tmp_path, tmp_path / "x.xyz", scan, missing)
+    completed = tmp_path / "x_completed.ply"
+    out = tmp_path / "r.png"
+    argv = ["render", str(completed), "--out", str(out), "--views", "1", "--point-size", "40"]
+    assert main(argv) == 0
+    image = _pixels(out)
+    assert _has_colour(image, PARTIAL_COLOR) and _has_colour(image, PREDICTION_COLOR)
+    assert not _has_colour(image, GROUND_TRUTH_COLOR)
+    from pfnet.formats.ply import read_ply_colors
+
+    title, layers = own_color_panel(*(f(completed) for f in (_read, read_ply_colors)))
+    assert title == "completion" and [len(p) for p, _ in layers] == [len(scan), len(missing)]
+    assert own_color_panel(missing, np.tile([0.2, 0.4, 0.6], (len(missing), 1)))[0] == (
+        "its own colours"
+    )
+    # --role still decides for every file; a file without colours is the ground truth
+    grey = _count(image, PARTIAL_COLOR)
+    assert main([*argv, "--role", "prediction"]) == 0
+    assert _count(_pixels(out), PARTIAL_COLOR) < grey / 10  # the label's anti-aliased text
+    write_ply(tmp_path / "plain.ply", sphere)
+    assert main(["render", str(tmp_path / "plain.ply"), *argv[2:]]) == 0
+    assert _has_colour(_pixels(out), GROUND_TRUTH_COLOR)
+
+
+def _count(image: np.ndarray, hex_colour: str, tol: float = 0.12) -> int:
+    rgb = np.array([int(hex_colour[i : i + 2], 16) / 255 for i in (1, 3, 5)])
+    return int((np.abs(image - rgb).max(axis=-1) < tol).sum())
+
+
+def _read(path):
+    from pfnet.io import read_point_cloud
+
+    return read_point_cloud(path)
+
+
+def test_render_samples_with_a_dash_keep_every_panel_under_its_header(tmp_path, sphere):
+    """A row without a prediction ('-') leaves the completion's cell empty: its ground truth
+    stays in the ground-truth column, under that header, as in a full row."""
+    from pfnet.rendering import column_titles
+
+    partial, missing = sphere[sphere[:, 0] < 0.5], sphere[sphere[:, 0] >= 0.5]
+    save_npy(tmp_path / "p.npy", partial)
+    save_npy(tmp_path / "m.npy", missing)
+    save_npy(tmp_path / "g.npy", sphere)
+    out = tmp_path / "r.png"
+    files = [str(tmp_path / n) for n in ("p.npy", "m.npy", "g.npy")]
+    argv = ["render", "--sample", files[0], "-", files[2], "--sample", *files]
+    assert main([*argv, "--out", str(out), "--views", "1", "--point-size", "40"]) == 0
+    cells = _cells(_pixels(out), rows=2, cols=3)
+    assert not _has_colour(cells[0, 1], GROUND_TRUTH_COLOR)  # under "completion": nothing
+    assert _has_colour(cells[0, 2], GROUND_TRUTH_COLOR)  # under "ground truth"
+    assert _has_colour(cells[1, 1], PREDICTION_COLOR) and _has_colour(
+        cells[1, 2], GROUND_TRUTH_COLOR
+    )
+    b = [("prediction", []), ("ground truth", []), ("x", [])]
+    rows = [("a", [("input", []), ("ground truth", [])]), ("b", b)]
+    assert column_titles(rows) == ["input", "prediction", "ground truth", "x"]

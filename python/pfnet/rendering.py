@@ -31,6 +31,12 @@ GROUND_TRUTH_COLOR = "#2f6fd0"
 """Blue: the complete ground-truth cloud."""
 
 
+Layer = tuple[np.ndarray, "str | np.ndarray"]
+"""A cloud and its colour: ``"#rrggbb"``, or ``(N, 3)`` floats in ``[0, 1]``, one per point."""
+Panel = tuple[str, list[Layer]]
+"""A column title and the layers drawn in that panel, back to front."""
+
+
 def rgb(color: str) -> tuple[int, int, int]:
     """``"#rrggbb"`` as an ``(r, g, b)`` tuple of 0-255 integers."""
     return (int(color[1:3], 16), int(color[3:5], 16), int(color[5:7], 16))
@@ -45,12 +51,82 @@ class RenderSample:
         partial: ``(P, 3)`` incomplete input, or None.
         prediction: ``(M, 3)`` predicted missing region (or a full completion), or None.
         ground_truth: ``(N, 3)`` complete cloud, or None.
+        cloud: ``(K, 3)`` a cloud drawn in its own colours ``cloud_colors`` (a file that
+            ``pfnet complete`` wrote, grey and yellow), or None.
+        cloud_colors: ``(K, 3)`` float colours in ``[0, 1]`` of ``cloud``.
     """
 
     label: str
     partial: np.ndarray | None = None
     prediction: np.ndarray | None = None
     ground_truth: np.ndarray | None = None
+    cloud: np.ndarray | None = None
+    cloud_colors: np.ndarray | None = None
+
+
+# A cloud with at most this many distinct colours is drawn as one layer per colour (so that
+# the paper's colours get their legend names in the viewer); with more, one layer of colours.
+MAX_COLOR_LAYERS = 16
+OWN_COLORS_TITLE = "its own colours"
+
+
+def _hex(color: np.ndarray) -> str:
+    return "#" + "".join(f"{int(v):02x}" for v in color)
+
+
+def own_color_panel(cloud: np.ndarray, colors: np.ndarray) -> Panel:
+    """The panel of a cloud in its own per-point ``colors`` (``(K, 3)`` floats in ``[0, 1]``).
+
+    Its title says what the colours are: a cloud in the paper's colours is titled as a
+    gallery's panel would be (grey and yellow: ``completion``; yellow: ``prediction``; grey:
+    ``input``; blue: ``ground truth``), any other ``its own colours``.
+    """
+    cloud, colors = np.asarray(cloud), np.asarray(colors, dtype=np.float64)
+    if colors.shape != cloud.shape:
+        raise DataError(f"colours of shape {colors.shape} for a cloud of shape {cloud.shape}")
+    codes = np.rint(np.clip(colors, 0.0, 1.0) * 255).astype(np.uint8)
+    distinct, first, inverse = np.unique(codes, axis=0, return_index=True, return_inverse=True)
+    if len(distinct) > MAX_COLOR_LAYERS:
+        return OWN_COLORS_TITLE, [(cloud, codes / 255.0)]
+    inverse = inverse.reshape(-1)
+    order = np.argsort(first)  # the colours in the file's order: grey (the scan) first
+    layers = [(cloud[inverse == k], _hex(distinct[k])) for k in order]
+    paper = {PARTIAL_COLOR: "input", PREDICTION_COLOR: "prediction"}
+    names = {color for _, color in layers}
+    if names == {PARTIAL_COLOR, PREDICTION_COLOR}:
+        title = "completion"
+    elif names == {GROUND_TRUTH_COLOR}:
+        title = "ground truth"
+    elif len(names) == 1 and next(iter(names)) in paper:
+        title = paper[next(iter(names))]
+    else:
+        title = OWN_COLORS_TITLE
+    return title, layers
+
+
+def column_titles(rows: list[tuple[str, list[Panel]]]) -> list[str]:
+    """The columns of ``rows``: every panel title once, each row's titles in that row's order.
+
+    A title that an earlier row lacks goes before the next of its row's titles already placed
+    (after the previous one if none follows), so a row without a prediction does not move the
+    ground truth under the prediction's column: rows ``[input, ground truth]`` then
+    ``[input, completion, ground truth]`` give ``[input, completion, ground truth]``.
+    """
+    titles: list[str] = []
+    for _, panels in rows:
+        names = [name for name, _ in panels]
+        for i, name in enumerate(names):
+            if name in titles:
+                continue
+            after = [n for n in names[i + 1 :] if n in titles]
+            before = [n for n in names[:i] if n in titles]
+            if after:
+                titles.insert(titles.index(after[0]), name)
+            elif before:
+                titles.insert(titles.index(before[-1]) + 1, name)
+            else:
+                titles.append(name)
+    return titles
 
 
 def _panels(sample: RenderSample) -> list[tuple[str, list[tuple[np.ndarray, str]]]]:
@@ -65,6 +141,10 @@ def _panels(sample: RenderSample) -> list[tuple[str, list[tuple[np.ndarray, str]
         panels.append(("completion" if sample.partial is not None else "prediction", layers))
     if sample.ground_truth is not None:
         panels.append(("ground truth", [(sample.ground_truth, GROUND_TRUTH_COLOR)]))
+    if sample.cloud is not None:
+        if sample.cloud_colors is None:
+            raise ConfigError(f"sample {sample.label!r} has a cloud without its colours")
+        panels.append(own_color_panel(sample.cloud, sample.cloud_colors))
     return panels
 
 
@@ -100,12 +180,6 @@ def render_gallery(
         panel_inches=panel_inches,
         dpi=dpi,
     )
-
-
-Layer = tuple[np.ndarray, str]
-"""A cloud and its colour."""
-Panel = tuple[str, list[Layer]]
-"""A column title and the layers drawn in that panel, back to front."""
 
 
 def row_label(label: str, height_inches: float, fontsize: float) -> str:
@@ -148,8 +222,10 @@ def render_panels(
         out: Destination ``.png`` path, or ``.html`` for :func:`pfnet.viewer.write_viewer`
             (``views``, ``panel_inches`` and ``dpi`` then do not apply); its folder is
             created if needed.
-        rows: ``(label, panels)`` per row; the first row's panel titles head the columns.
-            All panels of a row share one scale, so sizes compare across the row.
+        rows: ``(label, panels)`` per row. Each panel title is a column
+            (:func:`column_titles`), headed by the title; a row without some panel leaves
+            its cell empty. All panels of a row share one scale, so sizes compare across
+            the row.
         views: Number of viewing angles per row (azimuths spread over 360 degrees).
         title: Optional figure title.
         point_size: Marker area in points squared.
@@ -200,7 +276,12 @@ def render_panels(
         from pfnet.viewer import write_viewer
 
         return write_viewer(out, rows, title=title, point_size=point_size)
-    n_cols = max(len(panels) for _, panels in rows) * views
+    titles = column_titles(rows)
+    n_cols = len(titles) * views
+    # The title heads each column on the first row that has a panel in it.
+    headed = {
+        name: next(r for r, (_, ps) in enumerate(rows) if name in dict(ps)) for name in titles
+    }
     fig = Figure(figsize=(panel_inches * n_cols + 0.6, panel_inches * len(rows) + 0.4), dpi=dpi)
     azimuths = [-60.0 + 360.0 * v / views for v in range(views)]
     for r, (label, panels) in enumerate(rows):
@@ -208,13 +289,16 @@ def render_panels(
         lo, hi = everything.min(axis=0), everything.max(axis=0)
         centre, half = (lo + hi) / 2.0, max(float((hi - lo).max()) / 2.0, 1e-9)
         for v, azimuth in enumerate(azimuths):
-            for k, (name, layers) in enumerate(panels):
-                col = v * len(panels) + k
+            for name, layers in panels:
+                col = v * len(titles) + titles.index(name)
                 ax = fig.add_subplot(len(rows), n_cols, r * n_cols + col + 1, projection="3d")
                 for points, color in layers:
                     points = np.asarray(points)
                     if len(points) > MAX_DRAWN:  # a picture cannot show more; every k-th
-                        points = points[:: -(-len(points) // MAX_DRAWN)]
+                        step = -(-len(points) // MAX_DRAWN)
+                        points = points[::step]
+                        if not isinstance(color, str):  # one colour per point
+                            color = np.asarray(color)[::step]
                     pts = np.asarray(points, dtype=np.float64) - centre
                     # y-up data: draw (x, z, y) so that y is matplotlib's vertical axis.
                     ax.scatter(
@@ -232,7 +316,7 @@ def render_panels(
                 ax.set_box_aspect((1, 1, 1))
                 ax.view_init(elev=20.0, azim=azimuth)
                 ax.set_axis_off()
-                if col == 0:
+                if v == 0 and col == min(titles.index(n) for n, _ in panels):
                     ax.text2D(
                         0.0,
                         0.5,
@@ -245,7 +329,7 @@ def render_panels(
                         multialignment="center",
                         parse_math=False,  # a "$" in a file or category name is text
                     )
-                if r == 0:
+                if r == headed[name]:
                     suffix = f" ({azimuth:.0f}°)" if views > 1 else ""
                     ax.set_title(name + suffix, fontsize=9, parse_math=False)
     # Inches kept free above the panels: the column titles, and the figure title above them.

@@ -71,6 +71,7 @@ def write_viewer(
     """
     from pfnet.errors import MissingDependency
     from pfnet.io import atomic_path, output_path
+    from pfnet.rendering import column_titles as columns_of
     from pfnet.runtimes import has_module
 
     if not has_module("plotly"):
@@ -81,8 +82,8 @@ def write_viewer(
     if Path(out).suffix.lower() != ".html":
         raise ConfigError(f"render: the viewer must be a .html file, got {out}")
     names = _layer_names()
-    # One column per panel title (input, completion, ..., ground truth), in order of appearance.
-    column_titles = list(dict.fromkeys(name for _, panels in rows for name, _ in panels))
+    # One column per panel title (input, completion, ..., ground truth), as in the PNG.
+    column_titles = columns_of(rows)
     n_cols = len(column_titles)
     fig = make_subplots(
         rows=1,
@@ -98,9 +99,14 @@ def write_viewer(
             k = column_titles.index(panel_title)
             for points, color in layers:
                 pts = np.asarray(points, dtype=np.float32)
+                if not isinstance(color, str):  # one colour per point (a file's own)
+                    codes = np.rint(np.asarray(color, dtype=np.float64) * 255).astype(int)
+                    color = [f"rgb({r_},{g},{b})" for r_, g, b in codes]
                 if len(pts) > max_points:
-                    pts = pts[:: -(-len(pts) // max_points)]
-                name = names.get(color, color)
+                    step = -(-len(pts) // max_points)
+                    pts = pts[::step]
+                    color = color if isinstance(color, str) else color[::step]
+                name = names.get(color, color) if isinstance(color, str) else "its own colours"
                 # y-up data: plotly's vertical axis is z, so draw (x, z, y).
                 trace = go.Scatter3d(
                     x=pts[:, 0],

@@ -21,7 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "files",
         nargs="*",
         metavar="FILE",
-        help="point cloud files (.npy .ply .xyz .pts .txt .pcd), one row each, coloured by --role",
+        help="point cloud files (.npy .ply .xyz .pts .txt .pcd), one row each: a PLY file with "
+        "its own colours (as pfnet complete writes) in them, any other coloured by --role",
     )
     parser.add_argument(
         "--sample",
@@ -43,9 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--role",
         choices=ROLES,
-        default="ground-truth",
-        help="colour of the FILE rows: partial grey, prediction yellow, ground-truth blue "
-        "(default: %(default)s)",
+        default=None,
+        help="draw every FILE as this: partial grey, prediction yellow, ground-truth blue "
+        "(default: a PLY file's own colours, e.g. x_completed.ply grey and yellow, titled by "
+        "them; ground-truth for a file without colours)",
     )
     parser.add_argument("--views", type=int, default=2, help="view angles (default: 2)")
     parser.add_argument("--title", default=None, help="figure title")
@@ -74,8 +76,17 @@ def run(args: argparse.Namespace) -> int:
     refuse_input_overwrite(outputs, inputs, flag="--out/--html")
     samples = []
     for name in args.files:
-        samples.append(RenderSample(label=Path(name).name))
-        setattr(samples[-1], _FIELDS[args.role], read_point_cloud(name))
+        points = read_point_cloud(name)
+        colors = None
+        if args.role is None and Path(name).suffix.lower() == ".ply":
+            from pfnet.formats.ply import read_ply_colors
+
+            colors = read_ply_colors(Path(name))
+        if colors is not None:
+            samples.append(RenderSample(Path(name).name, cloud=points, cloud_colors=colors))
+        else:
+            samples.append(RenderSample(label=Path(name).name))
+            setattr(samples[-1], _FIELDS[args.role or "ground-truth"], points)
     for triple in args.sample:
         if all(t == "-" for t in triple):
             raise ConfigError("--sample needs at least one file that is not '-'")

@@ -280,3 +280,42 @@ def _gather_columns(body, layout, starts, names) -> np.ndarray:
         index = (starts[k] + at)[:, None] + np.arange(dtype.itemsize)
         columns.append(data[index].view(dtype)[:, 0])
     return float32_columns(columns)
+
+
+# The vertex properties of a colour, and the largest value of each integer type (its white).
+COLOR_PROPERTIES = ("red", "green", "blue")
+_COLOR_SCALE = {"u1": 255.0, "u2": 65535.0, "i1": 127.0, "i2": 32767.0, "u4": 2**32 - 1.0}
+
+
+def read_ply_colors(file: Path) -> np.ndarray | None:
+    """The vertex colours of a PLY file (``red green blue``), float32 ``(N, 3)`` in ``[0, 1]``,
+    or ``None`` when its vertices have none (``pfnet complete`` writes them as ``uchar``).
+
+    The colour columns are read by the same readers as the coordinates (each format, list
+    properties, the same limits), with the colour properties in the place of ``x y z``.
+
+    Raises:
+        DataError: As :func:`read_ply`.
+    """
+    with open(file, "rb") as fh:
+        magic = fh.readline(8)
+        if magic.strip() != b"ply":
+            raise DataError(f"{file}: not a PLY file (first line is not 'ply')")
+        header = read_header(fh, file, b"end_header")
+        elements, fmt = parse_header(file, header)
+        vertex_index = [e[0] for e in elements].index("vertex")
+        name, count, props = elements[vertex_index]
+        types = {p[0]: p[1] for p in props if p[2] is None}
+        if not all(c in types for c in COLOR_PROPERTIES):
+            return None
+        check_point_count(file, count)
+        swap = {**dict(zip(COLOR_PROPERTIES, "xyz")), "x": "\0x", "y": "\0y", "z": "\0z"}
+        renamed = [(swap.get(p[0], p[0]), p[1], p[2]) for p in props]
+        elements = [*elements[:vertex_index], (name, count, renamed), *elements[vertex_index + 1 :]]
+        if fmt == "ascii":
+            values = _read_ply_ascii(file, fh, elements, vertex_index, len(header) + 2)
+        else:
+            endian = "<" if fmt == "binary_little_endian" else ">"
+            values = _read_ply_binary(file, map_rest(fh, file), elements, vertex_index, endian)
+    scale = np.array([_COLOR_SCALE.get(types[c], 1.0) for c in COLOR_PROPERTIES], np.float32)
+    return np.clip(values / scale, 0.0, 1.0).astype(np.float32)
