@@ -67,12 +67,16 @@ class OnnxGenerator:
 
     def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
         from pfnet.onnx_export import FORMAT, VERSION
+        from pfnet.onnx_graph import check_graph
 
         ort = import_onnxruntime("the ONNX runtime")
         self.path = Path(path)
         options = ort.SessionOptions()
         # ORT's own log is not the user's business: its errors come back as exceptions too
         options.log_severity_level = 4
+        # a model file from elsewhere: only a graph a pfnet export could be (no loops, no
+        # unbounded allocations) is given to ORT
+        check_graph(self.path)
         try:
             self.session = ort.InferenceSession(
                 str(self.path), options, providers=_providers(ort, device)
