@@ -265,13 +265,16 @@ def test_missing_and_bad_files_are_listed_and_excluded(tmp_path, tiny_dataset, t
     assert code == 0
 
 
-def test_suffix_priority_and_lookup(tmp_path):
+def test_suffixes_and_lookup(tmp_path):
     (tmp_path / "chair").mkdir()
-    for name in ("a.txt", "a.npy", "a.ply", "b.xyz", "b.pts", ".hidden.npy", "c.obj"):
+    for name in ("a.npy", "b.xyz", ".hidden.npy", ".hidden.ply", "c.obj"):
         (tmp_path / "chair" / name).write_text("")
     (tmp_path / "loose.npy").write_text("")
     files = find_prediction_files(tmp_path)
     assert {k: v.name for k, v in files.items()} == {"chair/a": "a.npy", "chair/b": "b.xyz"}
+    (tmp_path / "chair" / "b.pts").write_text("")  # two files of one sample: refused (issue 36)
+    with pytest.raises(DataError, match=r"b\.pts and .*b\.xyz are two predictions"):
+        find_prediction_files(tmp_path)
 
 
 def test_pick_gallery_round_robin():

@@ -19,7 +19,9 @@ import pytest
 
 from pfnet.cli import main
 from pfnet.data import load_split
-from pfnet.data.format import TEMPORARY_MARK, loaded_split_digest, write_dataset
+from pfnet.data.digests import loaded_split_digest
+from pfnet.data.format import write_dataset
+from pfnet.data.temporaries import TEMPORARY_MARK
 from pfnet.errors import DataError
 from pfnet.locks import folder_lock, holders
 
@@ -96,9 +98,9 @@ def test_train_holds_its_run_folder_and_a_second_run_is_refused(tiny_dataset, tm
     told = []
     real_run = loop.Trainer.run
 
-    def run_and_look(self, progress=False):
+    def run_and_look(self, *args, **kwargs):
         told.append(_tries(run))  # another process, while this run trains
-        return real_run(self, progress)
+        return real_run(self, *args, **kwargs)
 
     argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--preset", "small"]
     argv += ["--model", "mlp", "--epochs", "1", "--batch-size", "8", "--width", "0.125"]

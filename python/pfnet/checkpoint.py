@@ -13,6 +13,7 @@ rows), ``rng`` (torch CPU / CUDA generator states) and ``world_size``.
 from __future__ import annotations
 
 import os
+import warnings
 import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -48,7 +49,11 @@ def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "
         raise DataError(f"checkpoint {path} does not exist")
     _check_stored(path)
     try:
-        state = torch.load(path, map_location=device, weights_only=True)
+        with warnings.catch_warnings():
+            # torch warns of a foreign file's pickle protocol before refusing it: the refusal
+            # is the one line the user gets
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")
+            state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # torch raises many types for corrupt or unsafe files
         raise DataError(_unreadable(path, err)) from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:

@@ -141,7 +141,10 @@ def _one_line(err: BaseException) -> str:
         return "out of memory"
     if isinstance(err, OSError):
         where = f": {err.filename}" if err.filename else ""
-        return f"{err.strerror or err}{where}"
+        # an OSError raised with a message only (numpy's, on a full disk) has no strerror,
+        # and once a file is set on it str() reads "[Errno None] None": keep the message
+        said = next((a for a in err.args if isinstance(a, str) and a.strip()), None)
+        return f"{err.strerror or said or type(err).__name__}{where}"
     return str(err)
 
 

@@ -84,10 +84,14 @@ class Evaluation:
 
 
 def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, Path]:
-    """Map ``<category>/<name>`` to its prediction file (first suffix in PREDICTION_SUFFIXES).
+    """Map ``<category>/<name>`` to its prediction file (a suffix of PREDICTION_SUFFIXES).
 
     A category entry that cannot be listed (a symlink loop, no permission) is named on
     stderr (unless ``quiet``) and skipped; its samples then count as missing.
+
+    Raises:
+        DataError: Two files for one sample (``x.npy`` and ``x.ply``), naming both: which
+            one holds the prediction is not pfnet's to guess (one was ignored silently).
     """
     rank = {s: i for i, s in enumerate(PREDICTION_SUFFIXES)}
     found: dict[str, tuple[int, Path]] = {}
@@ -108,8 +112,13 @@ def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, P
                 if suffix not in rank or entry.name.startswith("."):
                     continue
                 key = f"{cat.name}/{stem}"
-                if key not in found or rank[suffix] < found[key][0]:
-                    found[key] = (rank[suffix], Path(entry.path))
+                if key in found:
+                    first, second = sorted([found[key][1], Path(entry.path)])
+                    raise DataError(
+                        f"{first} and {second} are two predictions of the sample {key}; "
+                        "keep one of them"
+                    )
+                found[key] = (rank[suffix], Path(entry.path))
     return {key: path for key, (_, path) in found.items()}
 
 

@@ -269,7 +269,7 @@ def write_record(
     and last the files the run wrote (:func:`~pfnet.prediction_record.run_files`; which
     ``--overwrite`` may remove).
     """
-    from pfnet.data.format import loaded_split_digest
+    from pfnet.data.digests import loaded_split_digest
     from pfnet.shipped import describe
 
     info = {

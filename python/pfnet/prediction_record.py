@@ -254,7 +254,7 @@ def recorded_data_problem(
     Raises:
         DataError: If the record exists but cannot be read.
     """
-    from pfnet.data.format import split_digest
+    from pfnet.data.digests import split_digest
 
     info = read_record(pred_dir)
     if info is None or info["split"] != split or "split_sha256" not in info:

@@ -359,6 +359,12 @@ def _scoring_ratio(args: argparse.Namespace) -> float:
     ratio = made_ratio if asked is None else asked
     if args.ignore_recorded_protocol:
         return ratio
+    if getattr(args, "pred_is_complete", False):
+        raise ConfigError(
+            f"{args.pred} holds predictions of the missing region only ({record} records the "
+            "pfnet protocol, which writes that region): drop --pred-is-complete, or pass "
+            "--ignore-recorded-protocol"
+        )
     points = read_manifest(args.data).get("points")
     if made_points is not None and isinstance(points, int) and points != made_points:
         raise ConfigError(

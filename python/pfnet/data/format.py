@@ -17,11 +17,9 @@ so an interrupted run never leaves a folder that looks like a finished dataset.
 from __future__ import annotations
 
 import contextlib
-import glob
 import hashlib
 import json
 import os
-import shutil
 import unicodedata
 import zipfile
 from collections.abc import Mapping
@@ -31,6 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.data.archives import check_members, write_npz
+from pfnet.data.digests import remember_digest
+from pfnet.data.temporaries import remove_stale_temporaries, replace_through_temporary
 from pfnet.errors import DataError
 
 __all__ = [
@@ -325,25 +325,6 @@ def split_categories(root: str | os.PathLike[str], split: str) -> list[str]:
     return load_split(root, split).categories
 
 
-def split_digest(root: str | os.PathLike[str], split: str) -> str:
-    """The SHA-256 of a split's file as it is now (about 2 s a GB)."""
-    with open(Path(root) / f"{split}.npz", "rb") as file:
-        return hashlib.file_digest(file, "sha256").hexdigest()
-
-
-# The SHA-256 of the bytes each split file had when this process loaded it (load_split).
-_READ_DIGESTS: dict[tuple[str, str], str] = {}
-
-
-def loaded_split_digest(root: str | os.PathLike[str], split: str) -> str:
-    """The SHA-256 of the bytes :func:`load_split` last read of a split in this process (of
-    the file as it is now if it read none): what predictions are recorded as made from, so
-    that they are never scored against other clouds under the same names. Hashed when read,
-    so a ``prepare --overwrite`` that replaces the data set meanwhile cannot change it."""
-    read = _READ_DIGESTS.get((str(Path(root).resolve()), split))
-    return read if read is not None else split_digest(root, split)
-
-
 def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
     """Load one split of a dataset into memory.
 
@@ -390,7 +371,7 @@ def load_split(root: str | os.PathLike[str], split: str) -> CloudSet:
         clouds = CloudSet(**arrays)
     except DataError as err:
         raise DataError(f"{path}: {err}") from err
-    _READ_DIGESTS[(str(Path(root).resolve()), split)] = digest
+    remember_digest(root, split, digest)
     listed = manifest.get("categories")
     if isinstance(listed, list):
         strays = sorted(set(clouds.categories) - {str(c) for c in listed})
@@ -480,56 +461,14 @@ def write_dataset(
         raise DataError(f"a dataset needs the splits {', '.join(SPLITS)}, got {sorted(splits)}")
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
-    if path.is_dir():  # replaced: never while a predict, evaluate or train reads it
-        with folder_lock(path, "replacing"):
-            return _write_dataset(path, splits, manifest, side_files)
-    return _write_dataset(path, splits, manifest, side_files)
-
-
-# The file that marks a folder ``OUT.tmp-<pid>`` as pfnet's own, so that only such a folder
-# is ever removed as a leftover (a SIGKILLed prepare leaves one behind; a user's folder that
-# merely has that name is never touched). Removed just before the folder becomes ``OUT``.
-TEMPORARY_MARK = ".pfnet-prepare-temporary"
-
-
-def remove_stale_temporaries(path: Path) -> list[Path]:
-    """Remove the ``PATH.tmp-<pid>`` folders that pfnet prepare wrote (they hold
-    :data:`TEMPORARY_MARK`) for a process that is gone; returns them."""
-    removed = []
-    for folder in path.parent.glob(f"{glob.escape(path.name)}.tmp-*"):
-        pid = folder.name.rsplit("-", 1)[1]
-        if not pid.isdigit() or not (folder / TEMPORARY_MARK).is_file() or folder.is_symlink():
-            continue
-        if int(pid) == os.getpid() or not _process_is_gone(int(pid)):
-            continue
-        shutil.rmtree(folder, ignore_errors=True)
-        removed.append(folder)
-    return removed
-
-
-def _process_is_gone(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except OSError:  # alive, another user's
-        return False
-    return False
+    # replaced: never while a predict, evaluate or train reads it
+    held = folder_lock(path, "replacing") if path.is_dir() else contextlib.nullcontext()
+    with held:
+        return _write_dataset(path, splits, manifest, side_files)
 
 
 def _write_dataset(path, splits, manifest, side_files) -> Path:
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    old = path.with_name(f"{path.name}.old-{os.getpid()}")
-    if tmp.exists() or tmp.is_symlink():
-        if not (tmp / TEMPORARY_MARK).is_file() or tmp.is_symlink():
-            raise DataError(
-                f"{tmp} exists and is not a temporary folder of pfnet prepare; pfnet will not "
-                "delete it: move it away"
-            )
-        shutil.rmtree(tmp)
-    try:
-        tmp.mkdir()
-        (tmp / TEMPORARY_MARK).touch()
+    def fill(tmp: Path) -> None:
         for split in SPLITS:
             cloud_set = splits[split]
             arrays = {
@@ -546,17 +485,6 @@ def _write_dataset(path, splits, manifest, side_files) -> Path:
         # back to the same name (a UTF-8 file cannot hold it; issue 36)
         text = json.dumps(manifest, indent=2) + "\n"
         (tmp / MANIFEST_NAME).write_text(text, encoding="utf-8")
-        (tmp / TEMPORARY_MARK).unlink()
-        if path.exists():
-            os.replace(path, old)
-        os.replace(tmp, path)
-    except BaseException as err:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(err, OSError) and err.filename is None:  # a full disk names no file
-            err.filename = str(path)
-        if old.exists() and not path.exists():
-            with contextlib.suppress(OSError):
-                os.replace(old, path)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
+
+    replace_through_temporary(path, fill)
     return path
