@@ -62,14 +62,16 @@ def test_model_config_is_the_networks_part_of_a_train_config() -> None:
     assert isinstance(train, ModelConfig)
     model = train.model_config()
     assert type(model) is ModelConfig
-    assert model == ModelConfig(model="cmlp", n_points=512, missing_ratio=0.25, width=0.25)
+    assert model == ModelConfig(
+        model="cmlp", n_points=512, missing_ratio=0.25, width=0.25, frame="scan"
+    )
     assert model.n_missing == 128
     # A checkpoint stores the training config; inference reads the network's keys of it.
     assert ModelConfig.from_dict(train.to_dict(), extra="ignore") == model
     with pytest.raises(
         ConfigError,
         match="checkpoint x: unknown key.*seed.*; valid keys: model, n_points, missing_ratio, "
-        "width$",
+        "width, frame$",
     ):
         ModelConfig.from_dict(train.to_dict(), source="checkpoint x")
     with pytest.raises(ConfigError, match="checkpoint x: n_points must be an integer"):

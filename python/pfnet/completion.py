@@ -1,27 +1,34 @@
-"""Completing your own partial point clouds with a trained model (the work behind
-``pfnet complete``).
+"""Completing your own partial point clouds with a trained model: :func:`complete` from
+Python, ``pfnet complete`` from the shell (the work behind both).
 
-For each input file (``.ply .xyz .pts .txt .npy .pcd``, see :mod:`pfnet.io`):
+For each partial cloud (an array, or a ``.ply .xyz .pts .txt .npy .pcd`` file, see
+:mod:`pfnet.io`):
 
-1. Normalise as the data sets are prepared (DESIGN.md §3, :func:`pfnet.data.sampling.normalize`):
-   subtract the centroid and divide by the largest distance from it (the max radius), so
-   the partial cloud fits the unit ball.
-2. Resample *for the network input only* to ``n = n_points - n_missing`` points, the
+1. Turn it to the data sets' y-up frame if its up axis is z (``up="z"``,
+   :func:`pfnet.data.scan_frame.to_y_up`).
+2. Normalise it in the scan frame (DESIGN.md §3, :mod:`pfnet.data.scan_frame`): subtract its
+   own centroid and divide by the largest distance from it (the max radius), in float64, so
+   the partial cloud fits the unit ball. A model trained with ``frame = "scan"`` saw its
+   training partials so; one trained in the ``shape`` frame (the paper's) did not, and
+   completes scans worse (the output says which).
+3. Resample *for the network input only* to ``n = n_points - n_missing`` points, the
    partial size the model was trained on: a larger cloud is reduced by iterative farthest
    point sampling (from its first point), a smaller one is repeated cyclically (point
    ``k`` is input point ``k mod N``; duplicates leave the max-pooled features unchanged).
-3. Predict the missing region (M points) and map it back: ``p · radius + centre``.
-4. Write ``OUT/<stem>_missing.ply`` (the M predicted points, yellow) and
+4. Predict the missing region (M points) and map it back through steps 2 and 1.
+5. ``pfnet complete`` writes ``OUT/<stem>_missing.ply`` (the M predicted points, yellow) and
    ``OUT/<stem>_completed.ply`` (every input point, unchanged and in its original order,
    grey, followed by the predicted points, yellow).
 
 Input points are never moved or dropped: the completed cloud starts with exactly the
-float32 coordinates :func:`pfnet.io.read_point_cloud` returned.
+coordinates given (or that :func:`pfnet.io.read_point_cloud` returned).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +44,7 @@ PREDICTION_RGB = rgb(PREDICTION_COLOR)
 
 
 def normalisation(points: np.ndarray, source: str = "input") -> Normalisation:
-    """Centre at the centroid and scale by the max radius, as data preparation does.
+    """Centre at the centroid and scale by the max radius (the scan frame), in float64.
 
     Raises:
         DataError: If all points coincide (no scale to normalise by).
@@ -58,6 +65,7 @@ def network_input(points: np.ndarray, n_input: int) -> np.ndarray:
     """
     from pfnet.geometry import farthest_point_sample
 
+    points = np.ascontiguousarray(points, dtype=np.float32)
     n = len(points)
     if n > n_input:
         index = farthest_point_sample(points, n_input, start_index=0)
@@ -70,6 +78,8 @@ def complete_clouds(
     model: Any,
     clouds: list[np.ndarray],
     *,
+    up: str = "y",
+    frame: str = "scan",
     batch_size: int = 32,
     device: str = "cpu",
     source: Any = "in use",
@@ -79,27 +89,172 @@ def complete_clouds(
     Args:
         model: A completion model in eval mode, with ``n_points`` and ``n_missing`` (or an
             :class:`pfnet.runtimes.OnnxGenerator`).
-        clouds: float32 ``(N_i, 3)`` partial clouds in any coordinates, any ``N_i``.
+        clouds: ``(N_i, 3)`` float partial clouds in any coordinates, any ``N_i``.
+        up: The clouds' up axis, ``y`` or ``z`` (:data:`pfnet.data.scan_frame.UP_AXES`).
+        frame: The model's frame (its config's ``frame``): ``aligned`` turns each cloud to
+            its main horizontal axis; ``scan`` and ``shape`` do not (a scan has no shape
+            frame: its own centroid and radius are all there is).
         batch_size: Clouds per forward pass.
         device: Torch device the model lives on.
         source: The checkpoint the model came from, named in errors.
 
     Returns:
-        One float32 ``(M, 3)`` array per cloud.
+        One ``(M, 3)`` array per cloud: float64 for a float64 cloud (a survey scan's
+        coordinates keep their precision), else float32.
 
     Raises:
         DataError: The model's output is not finite points of the expected shape
             (:func:`pfnet.inference.check_detail`).
     """
+    from pfnet.data.scan_frame import scan_frame, to_y_up
     from pfnet.inference import predict_missing
 
+    turn = to_y_up(up)
     n_input = int(model.n_points) - int(model.n_missing)
-    transforms = [normalisation(c) for c in clouds]
+    turned = [np.asarray(c, np.float64) @ turn.T for c in clouds]
+    for cloud in turned:
+        normalisation(cloud)  # DataError for a degenerate cloud
+    transforms = [scan_frame(c, aligned=frame == "aligned") for c in turned]
     batch = np.stack(
-        [network_input(t.apply(c), n_input) for c, t in zip(clouds, transforms, strict=True)]
+        [network_input(t.apply(c), n_input) for c, t in zip(turned, transforms, strict=True)]
     )
     detail = predict_missing(model, batch, batch_size, device, source=source)
-    return [t.invert(d) for t, d in zip(transforms, detail, strict=True)]
+    out = []
+    for cloud, transform, points in zip(clouds, transforms, detail, strict=True):
+        mapped = transform.invert(points) @ turn
+        dtype = np.float64 if np.asarray(cloud).dtype == np.float64 else np.float32
+        out.append(mapped.astype(dtype))
+    return out
+
+
+@dataclass(frozen=True)
+class Completion:
+    """What :func:`complete` returns.
+
+    Attributes:
+        missing: ``(M, 3)`` the predicted missing region, in the input's coordinates
+            (float64 for a float64 input, else float32).
+        completed: ``(N + M, 3)`` the input's points, exactly as given and in their order,
+            followed by ``missing``.
+        model: The model file that completed it.
+        frame: The frame that model was trained in (``scan`` or ``shape``, see
+            :data:`pfnet.models.config.FRAMES`).
+        runtime: ``torch`` or ``onnx``.
+    """
+
+    missing: np.ndarray
+    completed: np.ndarray
+    model: str
+    frame: str
+    runtime: str
+
+    def __repr__(self) -> str:
+        return (
+            f"Completion(missing={self.missing.shape[0]} points, completed="
+            f"{self.completed.shape[0]} points, model={Path(self.model).name!r}, "
+            f"frame={self.frame!r}, runtime={self.runtime!r})"
+        )
+
+
+_LOADED: dict[tuple[str, str, str], Any] = {}
+
+
+def load_model(
+    model: str | os.PathLike[str] | None = None, *, runtime: str = "auto", device: str = "auto"
+) -> Any:
+    """Load a completion model once and keep it for later calls (a
+    :class:`pfnet.runtimes.LoadedGenerator`).
+
+    Args:
+        model: A shipped model's name (see ``pfnet models``), a model file, a ``best.pt``,
+            or an ``.onnx`` export; ``None`` for the default shipped model.
+        runtime: ``auto`` (PyTorch if installed, else ONNX Runtime), ``torch`` or ``onnx``.
+        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Raises:
+        ConfigError, DataError, MissingDependency: As ``pfnet complete``'s ``--checkpoint``.
+    """
+    from pfnet.runtimes import load_generator
+    from pfnet.shipped import resolve_checkpoint
+
+    path = resolve_checkpoint(model)
+    key = (str(path.resolve()), runtime, device)
+    if key not in _LOADED:
+        _LOADED[key] = load_generator(path, runtime=runtime, device=device)
+    return _LOADED[key]
+
+
+def complete(
+    points: Any,
+    model: Any = None,
+    *,
+    up: str = "y",
+    runtime: str = "auto",
+    device: str = "auto",
+) -> Completion:
+    """Complete one partial point cloud.
+
+    Example::
+
+        import numpy as np, pfnet
+        scan = np.loadtxt("scan.xyz")          # (N, 3), z up
+        result = pfnet.complete(scan, up="z")
+        result.missing                         # (512, 3) predicted points, scan's coordinates
+
+    Args:
+        points: ``(N, 3)`` finite coordinates (any float or integer dtype), ``N >= 2``.
+        model: A shipped model's name, a model file, checkpoint or ``.onnx`` export, a model
+            returned by :func:`load_model`, or ``None`` for the default shipped model.
+        up: The cloud's up axis, ``y`` (the default; SweetHome3D, OpenGL) or ``z`` (ROS,
+            most scanners and LiDAR).
+        runtime: ``auto``, ``torch`` or ``onnx`` (ignored for a model already loaded).
+        device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (likewise).
+
+    Returns:
+        A :class:`Completion`.
+
+    Raises:
+        DataError: ``points`` is not an ``(N, 3)`` array of finite numbers, or all its points
+            coincide.
+        ConfigError: An unknown ``up``, runtime or device.
+    """
+    from pfnet.data.scan_frame import to_y_up
+    from pfnet.runtimes import LoadedGenerator
+
+    to_y_up(up)  # ConfigError for a bad axis before a model is loaded
+    cloud = check_points(points)
+    normalisation(cloud)
+    loaded = (
+        model
+        if isinstance(model, LoadedGenerator)
+        else load_model(model, runtime=runtime, device=device)
+    )
+    frame = getattr(loaded.config, "frame", "shape")
+    (missing,) = complete_clouds(
+        loaded.model, [cloud], up=up, frame=frame, device=loaded.device, source=loaded.source
+    )
+    completed = np.concatenate([cloud, missing.astype(cloud.dtype, copy=False)])
+    return Completion(missing, completed, str(loaded.source), frame, loaded.runtime)
+
+
+def check_points(points: Any, source: str = "points") -> np.ndarray:
+    """``points`` as an ``(N, 3)`` float array (float64 kept, other dtypes as float32).
+
+    Raises:
+        DataError: Not ``(N, 3)`` with ``N >= 1``, not numbers, or not finite.
+    """
+    try:
+        array = np.asarray(points)
+    except (TypeError, ValueError) as err:
+        raise DataError(f"{source}: not an array of points ({err})") from None
+    if array.ndim != 2 or array.shape[1] != 3 or array.shape[0] < 1:
+        raise DataError(f"{source} must have shape (N, 3) with N >= 1, got {array.shape}")
+    if array.dtype.kind not in "fiu":
+        raise DataError(f"{source} must hold numbers, got dtype {array.dtype}")
+    array = array.astype(np.float64 if array.dtype == np.float64 else np.float32, copy=False)
+    if not np.isfinite(array).all():
+        raise DataError(f"{source} holds NaN or infinite coordinates")
+    return array
 
 
 def output_paths(out_dir: Path, source: Path) -> tuple[Path, Path]:
@@ -178,20 +333,24 @@ def complete_files(
     inputs: list[Path],
     out_dir: Path,
     *,
+    up: str = "y",
+    frame: str = "scan",
     batch_size: int = 32,
     device: str = "cpu",
     on_skip: Callable[[DataError], None] | None = None,
     source: Any = "in use",
-) -> tuple[int, list[str]]:
+) -> tuple[list[Path], list[str]]:
     """Complete ``inputs`` batch by batch into ``out_dir`` (created if needed).
 
     A file that cannot be read, or whose points all coincide, is skipped (``on_skip`` is told
     at once) and the rest are completed. A first batch interrupted or refused, or inputs none
     of which could be read, leave no empty folder.
-    ``source`` (the checkpoint) is named if the model's output is refused.
+    ``source`` (the checkpoint) is named if the model's output is refused; ``up`` is the
+    inputs' up axis and ``frame`` the model's (see :func:`complete_clouds`).
 
     Returns:
-        The number of files completed and the messages of the files skipped.
+        The files written (two per input completed, in input order) and the messages of the
+        files skipped.
 
     Raises:
         ConfigError: If ``batch_size < 1``.
@@ -208,7 +367,7 @@ def complete_files(
         # one complete at a time in a folder: two once interleaved their files silently
         with folder_lock(out_dir, "writing completions into"):
             done, failed = _complete_batches(
-                model, inputs, out_dir, batch_size, device, on_skip, source
+                model, inputs, out_dir, (up, frame), batch_size, device, on_skip, source
             )
     except (KeyboardInterrupt, DataError):  # Ctrl-C, or a model whose output is refused
         if created and not any(out_dir.iterdir()):
@@ -219,14 +378,14 @@ def complete_files(
     return done, failed
 
 
-def _complete_batches(model, inputs, out_dir, batch_size, device, on_skip, source):
+def _complete_batches(model, inputs, out_dir, pose, batch_size, device, on_skip, source):
     """:func:`complete_files` without the folder's creation and clean-up."""
     from tqdm import tqdm
 
     from pfnet.io import read_point_cloud
 
     failed: list[str] = []
-    done = 0
+    done: list[Path] = []
     progress = tqdm(total=len(inputs), desc="complete", unit="file", disable=None)
     for start in range(0, len(inputs), batch_size):
         paths, clouds = [], []
@@ -243,12 +402,19 @@ def _complete_batches(model, inputs, out_dir, batch_size, device, on_skip, sourc
             paths.append(path)
             clouds.append(cloud)
         if clouds:
+            up, frame = pose
             predicted = complete_clouds(
-                model, clouds, batch_size=batch_size, device=device, source=source
+                model,
+                clouds,
+                up=up,
+                frame=frame,
+                batch_size=batch_size,
+                device=device,
+                source=source,
             )
             for path, cloud, missing in zip(paths, clouds, predicted, strict=True):
                 write_completion(out_dir, path, cloud, missing)
-                done += 1
+                done.extend(output_paths(out_dir, path))
                 progress.update(1)
     progress.close()
     return done, failed

@@ -9,12 +9,22 @@ import argparse
 import sys
 from pathlib import Path
 
+from pfnet.data.scan_frame import UP_AXES
 from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
 from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
 from pfnet.shipped import CHECKPOINT_HELP
 
 HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
+
+EPILOG = """examples:
+  pfnet complete scan.ply --out completed/              # y-up scan, the default shipped model
+  pfnet complete lidar/*.xyz --up z --out completed/    # z-up scans (ROS, most scanners)
+  pfnet complete scan.npy --checkpoint runs/mine/best.pt --out completed/
+
+Each scan is normalised by its own centroid and radius (the scan frame) and turned y-up;
+for each INPUT it writes OUT/<stem>_missing.ply (the predicted points) and
+OUT/<stem>_completed.ply (the input, unchanged, then the predicted points)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,6 +33,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "inputs", nargs="+", type=Path, metavar="INPUT", help="partial clouds to complete"
     )
     parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
+    parser.add_argument(
+        "--up",
+        choices=UP_AXES,
+        default="y",
+        help="the scans' up axis: y (default; SweetHome3D, OpenGL, the shipped models' "
+        "data) or z (ROS, most scanners and LiDAR)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="folder for the PLY outputs")
     parser.add_argument(
         "--overwrite",
@@ -47,20 +64,33 @@ def run(args: argparse.Namespace) -> int:
     inputs = check_outputs(args.inputs, args.out, overwrite=args.overwrite)
     loaded = load_generator(args.checkpoint, runtime=args.runtime, device=args.device)
     model, device = loaded.model, loaded.device
+    frame = getattr(loaded.config, "frame", "shape")
+    print(
+        f"model {loaded.source} ({loaded.runtime}, trained in the {frame} frame); "
+        f"scans {args.up}-up, normalised by their own centroid and radius"
+    )
+    if frame == "shape":
+        print(
+            "note: this model was trained in the complete shape's frame (the paper's "
+            "protocol), which a scan does not have; it completes scans worse than a "
+            "scan-frame model (pfnet models)",
+            file=sys.stderr,
+        )
     done, failed = complete_files(
         model,
         inputs,
         args.out,
+        up=args.up,
+        frame=frame,
         batch_size=args.batch_size,
         device=device,
         on_skip=lambda err: print(f"skipped: {err}", file=sys.stderr),
         source=loaded.source,
     )
     if done:
-        print(
-            f"completed {done} of {len(inputs)} file(s) into {args.out} "
-            f"(<stem>_missing.ply and <stem>_completed.ply)"
-        )
+        print(f"completed {len(done) // 2} of {len(inputs)} file(s); wrote:")
+        for path in done:
+            print(f"  {path}")
     else:
         print(f"completed none of {len(inputs)} file(s); nothing written")
     if failed:

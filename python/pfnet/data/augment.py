@@ -96,3 +96,16 @@ def augmentation_for(config: Any, data_dir: Path) -> Augmentation | None:
         except ConfigError as err:
             raise ConfigError(f"augment_rotate: {err} ({data_dir})") from None
     return Augmentation(up_axis, config.augment_scale, config.augment_jitter)
+
+
+def scan_up_axis(config: Any, data_dir: Path) -> int | None:
+    """A scan-frame run's up axis (the data set's), which the ``aligned`` frame turns about
+    and its validation turns its scans about when its training turns them
+    (``augment_rotate``); ``None`` in the shape frame or for a data set whose manifest does
+    not name it (then the ``aligned`` frame takes y)."""
+    if getattr(config, "frame", "shape") == "shape":
+        return None
+    try:
+        return up_axis_index(read_manifest(data_dir))
+    except ConfigError:
+        return None

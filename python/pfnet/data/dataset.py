@@ -12,7 +12,9 @@ from torch.utils.data import Dataset
 from pfnet.data.augment import Augmentation
 from pfnet.data.crops import missing_count, test_protocol_viewpoints
 from pfnet.data.format import CloudSet, load_split
+from pfnet.data.scan_frame import scan_angle, scan_frame, up_rotation
 from pfnet.errors import ConfigError, DataError
+from pfnet.models.config import FRAMES
 
 __all__ = ["CROPS", "CompletionDataset"]
 
@@ -47,9 +49,19 @@ class CompletionDataset(Dataset):
             protocol always uses the stored cloud.
         augment: With a random crop: an :class:`~pfnet.data.augment.Augmentation` applied
             to the complete cloud before the crop (seeded by ``(seed, epoch, index)``).
+        frame: ``shape`` (the stored frame, the paper's), ``scan`` (every sample normalised
+            by its partial cloud's own centroid and radius) or ``aligned`` (then turned about
+            the up axis to the partial's main horizontal axis); see
+            :func:`pfnet.data.scan_frame.scan_frame`.
+        up_axis: Index of the data set's up axis: what ``aligned`` turns about, and (with
+            the test crop and ``turn_test``) what each sample is first turned about by the
+            scan protocol's angle for it. ``None``: no test turn, and y for ``aligned``.
+        turn_test: Whether the test crop's samples are turned (in a scan frame).
 
     Each item is a dict: ``partial`` ``(N - m, 3)``, ``missing`` ``(m, 3)``, ``complete``
-    ``(N, 3)`` float32 tensors, ``category`` and ``name`` str, ``index`` int.
+    ``(N, 3)`` float32 tensors, ``category`` and ``name`` str, ``index`` int, and
+    ``frame_radius`` (float32 scalar tensor): the radius the frame divided by (1 in the
+    shape frame), by which distances are multiplied to score in the data set's units.
     """
 
     def __init__(
@@ -62,7 +74,17 @@ class CompletionDataset(Dataset):
         seed: int = 0,
         fresh_points: bool = False,
         augment: Augmentation | None = None,
+        frame: str = "shape",
+        up_axis: int | None = None,
+        turn_test: bool = True,
     ) -> None:
+        if frame not in FRAMES:
+            raise ConfigError(f"frame must be one of {', '.join(FRAMES)}, got {frame!r}")
+        if up_axis not in (None, 0, 1, 2):
+            raise ConfigError(f"up_axis must be 0, 1, 2 or None, got {up_axis!r}")
+        self.frame = frame
+        self.up_axis = up_axis
+        self.turn_test = bool(turn_test)
         if crop not in CROPS:
             raise ConfigError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -151,6 +173,9 @@ class CompletionDataset(Dataset):
                 n_regions=_MULTI_REGIONS if self.crop == "multi" else 1,
                 directions="sphere" if self.crop == "sphere" else "viewpoints",
             )
+        radius = 1.0
+        if self.frame != "shape":
+            partial, missing, complete, radius = self._scan_frame(index, partial, missing, complete)
         return {
             "partial": torch.from_numpy(np.ascontiguousarray(partial)),
             "missing": torch.from_numpy(np.ascontiguousarray(missing)),
@@ -158,4 +183,22 @@ class CompletionDataset(Dataset):
             "category": str(self.clouds.category[index]),
             "name": str(self.clouds.name[index]),
             "index": index,
+            "frame_radius": torch.tensor(radius, dtype=torch.float32),
         }
+
+    def _scan_frame(self, index, partial, missing, complete):
+        """``(partial, missing, complete, radius)`` in the partial's own frame (test crop:
+        after the scan protocol's turn about the up axis, unless ``turn_test`` is off)."""
+        if self.crop == "test" and self.turn_test and self.up_axis is not None:
+            turn = up_rotation(scan_angle(index), self.up_axis).T
+            partial, missing, complete = (
+                np.asarray(c, np.float64) @ turn for c in (partial, missing, complete)
+            )
+        up_axis = 1 if self.up_axis is None else self.up_axis
+        transform = scan_frame(partial, aligned=self.frame == "aligned", up_axis=up_axis)
+        return (
+            transform.apply(partial),
+            transform.apply(missing),
+            transform.apply(complete),
+            float(transform.radius),
+        )

@@ -26,6 +26,13 @@ MAX_POINTS = 1 << 16
 # defaults, or the authors' N(0, 0.02) convolutions and N(1, 0.02) BatchNorm weights.
 INIT_SCHEMES = ("pytorch", "authors")
 
+# The frame a network's input is given in (DESIGN.md §3): ``shape``, the complete shape's
+# centroid and radius (the paper's protocol: information a real scan never has); ``scan``,
+# the partial cloud's own centroid and radius, as ``pfnet complete`` normalises a scan; or
+# ``aligned``, the scan frame turned about the up axis to the partial's main horizontal axis
+# (:func:`pfnet.data.scan_frame.scan_frame`).
+FRAMES = ("shape", "scan", "aligned")
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -36,12 +43,17 @@ class ModelConfig:
         n_points: N, points per complete cloud; ``None`` = taken from the dataset.
         missing_ratio: Fraction of the N points removed by the crop; M = round(ratio · N).
         width: Multiplier of every hidden layer (1.0 = the paper's network).
+        frame: The frame of the network's input, one of :data:`FRAMES`: ``shape`` (the
+            complete shape's, the paper's; what every model file written before the key
+            existed was trained in), ``scan`` (the partial's own centroid and radius) or
+            ``aligned`` (that frame turned to the partial's main horizontal axis).
     """
 
     model: str = "pfnet"
     n_points: int | None = None
     missing_ratio: float = 0.25
     width: float = 1.0
+    frame: str = "shape"
 
     def __post_init__(self) -> None:
         check_model_config(self)
@@ -148,6 +160,7 @@ def check_model_config(c: ModelConfig) -> None:
         "a number in (0, 1)",
     )
     require(is_number(c.width) and 0 < c.width <= 4, "width", c.width, "a number in (0, 4]")
+    require(c.frame in FRAMES, "frame", c.frame, f"one of {', '.join(FRAMES)}")
 
 
 def check_missing_count(c: ModelConfig) -> None:

@@ -39,7 +39,7 @@ class CompletionCollate:
         """Collate a list of ``CompletionDataset`` items into a batch dict."""
         batch: dict[str, Any] = {
             key: torch.stack([item[key] for item in items])
-            for key in ("partial", "missing", "complete")
+            for key in ("partial", "missing", "complete", "frame_radius")
         }
         batch["category"] = [item["category"] for item in items]
         batch["index"] = torch.tensor([int(item["index"]) for item in items])

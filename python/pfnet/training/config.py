@@ -408,5 +408,7 @@ PRESETS: dict[str, TrainConfig] = {
         lr_gamma=0.2,
         alpha_schedule=((0, 0.01), (10, 0.05), (20, 0.1)),
         workers=0,
+        # What `pfnet complete` gives a network: the partial's own centroid and radius.
+        frame="scan",
     ),
 }

@@ -22,6 +22,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +31,7 @@ from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
 from pfnet.checkpoint import read_checkpoint
-from pfnet.data.augment import augmentation_for
+from pfnet.data.augment import augmentation_for, scan_up_axis
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import atomic_path, refuse_overlap
 from pfnet.locks import writing
@@ -64,6 +65,7 @@ def train(
     resume: bool = False,
     progress: bool | None = None,
     val_data: str | Path | None = None,
+    notes: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Train ``config.model`` on the dataset in ``data_dir``, writing the run to ``out_dir``.
 
@@ -83,11 +85,14 @@ def train(
         val_data: Take the ``val`` split from this data set instead (e.g. train on every
             catalogue model, validate on the 8 categories' split, which the wider set's
             train split leaves out).
+        notes: Called, before the first step, with each note about the run (a schedule that
+            leaves few steps at the full learning rate); ``pfnet train`` prints them. The
+            summary lists them either way.
 
     Returns:
         A summary: ``epochs`` completed, ``interrupted``, ``best_epoch``, ``best_val_cd_l2``,
         ``last`` / ``best`` checkpoint paths, ``world_size``, the final log row ``final``
-        and ``checkpoint_write_s`` (seconds the writer thread spent serialising).
+        ``checkpoint_write_s`` (seconds the writer thread spent serialising) and ``notes``.
 
     Raises:
         ConfigError: Bad configuration, or a resume that changes the configuration.
@@ -111,7 +116,7 @@ def train(
                 config, Path(data_dir), Path(out_dir), context, resume=resume, val_dir=val_dir
             )
             show = sys.stderr.isatty() if progress is None else progress
-            summary = trainer.run(progress=show and context.is_main)
+            summary = trainer.run(progress=show and context.is_main, notes=notes)
             finished = True
             return summary
     finally:
@@ -170,6 +175,8 @@ class Trainer:
             seed=config.seed,
             fresh_points=config.fresh_points,
             augment=augmentation_for(config, data_dir),
+            frame=config.frame,
+            up_axis=scan_up_axis(config, data_dir),
         )
         self.val_set = CompletionDataset(
             val_dir or data_dir,
@@ -177,6 +184,9 @@ class Trainer:
             missing_ratio=config.missing_ratio,
             crop="test",
             seed=config.seed,
+            frame=config.frame,
+            up_axis=scan_up_axis(config, val_dir or data_dir),
+            turn_test=config.augment_rotate,
         )
         if len(self.train_set) == 0:
             raise DataError(f"{data_dir}: the train split is empty")
@@ -345,17 +355,22 @@ class Trainer:
 
     # -- the loop ------------------------------------------------------------------------
 
-    def run(self, progress: bool = False) -> dict[str, Any]:
+    def run(
+        self, progress: bool = False, notes: Callable[[str], None] | None = None
+    ) -> dict[str, Any]:
         """Train until ``config.epochs`` or a stop request; see :func:`train`."""
         ctx = self.context
         c = self.config
+        run_notes: list[str] = []
         if ctx.is_main:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             with atomic_path(self.out_dir / "config.json") as tmp:
                 tmp.write_text(json.dumps(c.to_dict(), indent=2) + "\n")
             note = schedule_note(c, self.steps_per_epoch)
             if note and self.epoch == 0 and not self.batches_done:
-                print(f"pfnet train: note: {note}", file=sys.stderr)
+                run_notes.append(note)
+                if notes is not None:
+                    notes(note)
         interrupted = False
         with StopRequest().installed() as stop, CheckpointWriter() as writer:
             self._writer = writer
@@ -391,6 +406,7 @@ class Trainer:
             "world_size": ctx.world_size,
             "final": self.history[-1],
             "checkpoint_write_s": round(writer.seconds_writing, 3),
+            "notes": run_notes,
         }
 
     def _run_epoch(self, stop: StopRequest, progress: bool) -> bool:

@@ -54,7 +54,11 @@ def score_generator(
         partial = batch["partial"].to(device)
         with autocast():
             detail = network(partial, batch.get("scale_indices")).detail
-        metrics = sample_metrics(detail.float().cpu().numpy(), batch["missing"].numpy())
+        # scored in the data set's units: a scan-frame sample was divided by its own radius
+        radius = batch["frame_radius"].numpy().astype(np.float64)[:, None, None]
+        metrics = sample_metrics(
+            detail.float().cpu().numpy() * radius, batch["missing"].numpy() * radius
+        )
         for j, index in enumerate(batch["index"].tolist()):
             values = {k: float(v[j]) for k, v in metrics.items()}
             rows.append((index, batch["category"][j], values))

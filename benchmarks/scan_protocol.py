@@ -1,0 +1,174 @@
+"""The scan protocol, measured through ``pfnet complete`` itself (DESIGN.md §3).
+
+Each test partial of the paper's protocol (sample *i* loses the points nearest
+``VIEWPOINTS[i % 5]``) is put in a pose of its own (:func:`pfnet.data.scan_frame.scan_pose`:
+a random turn about the up axis, a random scale and offset; with ``--up z`` stood z-up),
+saved as ``.npy``, and completed by the ``pfnet complete`` command in a new process, as a
+user would. The completions are mapped back through the poses and scored against the removed
+points in the data set's frame (CD-L2 ×1000, F-score@0.01), beside:
+
+* the same model given the partial in the complete shape's frame (the paper's protocol, what
+  ``pfnet predict`` does: information a scan does not have);
+* the mirror completion (:mod:`pfnet.data.symmetry`), which learns nothing: the scan, turned
+  y-up and normalised in the scan frame, reflected across the vertical plane estimated from
+  the scan alone.
+
+    python benchmarks/scan_protocol.py --data data/sh3d [--checkpoint NAME] [--up z] \\
+        [--json results/scan-protocol/sh3d-small.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pfnet.data import load_split, test_protocol_crop
+from pfnet.data.scan_frame import UP_AXES, scan_normalisation, scan_pose, to_y_up
+from pfnet.data.symmetry import mirror_completion
+from pfnet.io import read_point_cloud
+from pfnet.metrics import sample_metrics, summarize
+
+
+def complete_through_cli(scans, out, up, checkpoint, runtime):
+    """Run ``pfnet complete`` on the scans (saved as .npy) and read back the predictions."""
+    inputs = out / "scans"
+    inputs.mkdir()
+    paths = []
+    for i, scan in enumerate(scans):
+        path = inputs / f"scan{i:04d}.npy"
+        np.save(path, scan)
+        paths.append(path)
+    command = [sys.executable, "-m", "pfnet.cli", "complete", *map(str, paths)]
+    command += ["--out", str(out / "completed"), "--up", up, "--runtime", runtime]
+    if checkpoint:
+        command += ["--checkpoint", checkpoint]
+    started = time.perf_counter()
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    elapsed = time.perf_counter() - started
+    if done.returncode != 0:
+        sys.exit(f"pfnet complete failed ({done.returncode}):\n{done.stderr}")
+    first_line = done.stdout.splitlines()[0] if done.stdout else ""
+    predictions = [
+        read_point_cloud(out / "completed" / f"{path.stem}_missing.ply").astype(np.float64)
+        for path in paths
+    ]
+    return predictions, first_line, elapsed
+
+
+def mirror_predictions(scans, up, n_missing):
+    """The mirror completion of each scan, in the scan's coordinates."""
+    turn = to_y_up(up)
+    out = []
+    for scan in scans:
+        upright = np.asarray(scan, np.float64) @ turn.T
+        frame = scan_normalisation(upright)
+        mirrored = mirror_completion(frame.apply(upright), n_missing, up_axis=1)
+        out.append((mirrored.astype(np.float64) * frame.radius + frame.centre) @ turn)
+    return out
+
+
+def shape_frame_predictions(partial, checkpoint, runtime):
+    """The model given each partial in the complete shape's frame (the paper's protocol)."""
+    from pfnet.inference import predict_missing
+    from pfnet.runtimes import load_generator
+
+    loaded = load_generator(checkpoint, runtime=runtime, device="cpu")
+    return list(predict_missing(loaded.model, np.asarray(partial, np.float32), 32, "cpu"))
+
+
+def score(predictions, removed, categories):
+    """Per-category and overall means (CD ×1000) of predictions against the removed points."""
+    per_sample = sample_metrics(
+        [np.asarray(p, np.float32) for p in predictions], list(removed.astype(np.float32))
+    )
+    return summarize(per_sample, categories)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, required=True, help="a prepared data set")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--ratio", type=float, default=0.25, help="missing ratio (0.25)")
+    parser.add_argument("--checkpoint", default=None, help="model (default: the shipped one)")
+    parser.add_argument("--runtime", default="auto", choices=("auto", "torch", "onnx"))
+    parser.add_argument("--up", default="y", choices=UP_AXES, help="stand the scans y- or z-up")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the poses (0)")
+    parser.add_argument(
+        "--no-turn", action="store_true", help="no turn about the up axis (scale and offset only)"
+    )
+    parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    args = parser.parse_args(argv)
+
+    clouds = load_split(args.data, args.split)
+    points = np.asarray(clouds.points, np.float32)
+    partial, removed = test_protocol_crop(points, args.ratio)
+    categories = [str(c) for c in clouds.category]
+    poses = [
+        scan_pose(i, up=args.up, seed=args.seed, turn=not args.no_turn) for i in range(len(points))
+    ]
+    scans = [pose.apply(p) for pose, p in zip(poses, partial, strict=True)]
+
+    with tempfile.TemporaryDirectory() as tmp:
+        completed, said, elapsed = complete_through_cli(
+            scans, Path(tmp), args.up, args.checkpoint, args.runtime
+        )
+    results = {
+        "complete (scan protocol)": [
+            pose.invert(c) for pose, c in zip(poses, completed, strict=True)
+        ],
+        "same model, shape frame (paper protocol)": shape_frame_predictions(
+            partial, args.checkpoint, args.runtime
+        ),
+        "mirror of the input (learns nothing)": [
+            pose.invert(c)
+            for pose, c in zip(
+                poses, mirror_predictions(scans, args.up, removed.shape[1]), strict=True
+            )
+        ],
+    }
+    tables = {name: score(p, removed, categories) for name, p in results.items()}
+
+    print(f"{len(points)} {args.split} partials of {args.data}, {args.up}-up; {said}")
+    print(f"pfnet complete: {elapsed:.1f} s for all, in a new process")
+    names = list(tables)
+    header = "category".ljust(10) + "".join(f" | {n[:28]:>28}" for n in names)
+    print(header + "\n" + "-" * len(header))
+    rows = [*sorted(tables[names[0]]["categories"]), "mean"]
+    for row in rows:
+        cells = []
+        for name in names:
+            table = tables[name]
+            values = table["mean"] if row == "mean" else table["categories"][row]
+            cells.append(f"{values['cd_l2']:8.2f} CD-L2  F {values['f_score']:.4f}")
+        print(row.ljust(10) + "".join(f" | {c:>28}" for c in cells))
+    model, mirror = tables[names[0]]["categories"], tables[names[2]]["categories"]
+    wins = sum(model[c]["f_score"] > mirror[c]["f_score"] for c in model)
+    print(f"F-score above the mirror's in {wins} of {len(model)} categories")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        document = {
+            "protocol": "scan",
+            "data": str(args.data),
+            "split": args.split,
+            "missing_ratio": args.ratio,
+            "up": args.up,
+            "seed": args.seed,
+            "turned": not args.no_turn,
+            "checkpoint": args.checkpoint or "default shipped model",
+            "complete_said": said,
+            "complete_seconds": round(elapsed, 2),
+            "f_wins_over_mirror": wins,
+            "results": tables,
+        }
+        args.json.write_text(json.dumps(document, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
