@@ -19,7 +19,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from pfnet.data import SWEETHOME3D_PATH
 from pfnet.data.sources import pick_source
@@ -76,21 +79,54 @@ def epochs_for_budget(left_s: float, epoch_s: float, preset_epochs: int) -> int:
     return max(2, min(3 * preset_epochs, 2 + more))
 
 
-def _step(number: int, text: str) -> None:
-    print(f"\n[{number}/6] {text}", flush=True)
+def _quiet(_line: str) -> None:
+    """The default of ``say``: a library call prints nothing."""
 
 
-def shipped_comparison(data_dir: Path, points: int) -> Path | None:
+@dataclass
+class DemoResult:
+    """What :func:`run_demo` made and where (the command prints it).
+
+    Attributes:
+        out: The demo's folder.
+        minutes: Wall time of the whole demo.
+        data_dir: The data set, and ``source`` the text of where it came from.
+        checkpoint: The trained run's best checkpoint.
+        pred_dir: The run's predictions of the test split.
+        metrics: ``metrics.json`` of the run, and ``mean`` its mean metrics (×1000).
+        shipped_metrics: ``metrics-shipped.json``, and ``shipped_mean``, when the shipped
+            model was compared; else None.
+        gallery: The gallery picture.
+        licences: The data set's licence entries (catalogue, licence, creators).
+    """
+
+    out: Path
+    minutes: float
+    data_dir: Path
+    source: str
+    checkpoint: Path
+    pred_dir: Path
+    metrics: Path
+    mean: dict[str, float]
+    gallery: Path
+    shipped_metrics: Path | None = None
+    shipped_mean: dict[str, float] | None = None
+    licences: list[dict[str, Any]] = field(default_factory=list)
+
+
+def shipped_comparison(
+    data_dir: Path, points: int, say: Callable[[str], None] = _quiet
+) -> Path | None:
     """The default shipped model's file if it completes clouds of this data set's size."""
     from pfnet.shipped import DEFAULT_MODEL, SUFFIX, WEIGHTS_DIR, read_metadata
 
     path = WEIGHTS_DIR / f"{DEFAULT_MODEL}{SUFFIX}"
     if not path.is_file():
-        print(f"no shipped model {DEFAULT_MODEL} in this installation; skipping the comparison")
+        say(f"no shipped model {DEFAULT_MODEL} in this installation; skipping the comparison")
         return None
     config, _ = read_metadata(path)
     if config.get("n_points") != points:
-        print(
+        say(
             f"the shipped model {DEFAULT_MODEL} takes {config.get('n_points')}-point clouds, "
             f"this data set has {points}; skipping the comparison"
         )
@@ -110,8 +146,9 @@ def run_demo(
     device: str = "cpu",
     seed: int = 0,
     gallery_count: int = 6,
-) -> None:
-    """Run the demo into ``out``, printing each step (see the module docstring).
+    say: Callable[[str], None] = _quiet,
+) -> DemoResult:
+    """Run the demo into ``out`` (see the module docstring).
 
     Args:
         out: Output folder; a data set already in ``out/data`` is reused.
@@ -125,6 +162,11 @@ def run_demo(
         device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
         seed: Seed of data and training.
         gallery_count: Samples in the gallery.
+        say: Called with each line of the demo's progress (``pfnet demo`` prints them);
+            by default nothing is printed.
+
+    Returns:
+        Where everything is, for the caller to report.
 
     Raises:
         ConfigError: ``minutes`` or ``epochs`` out of range, a bad device or source, or an
@@ -136,7 +178,7 @@ def run_demo(
         raise ConfigError(f"epochs must be at least 1, got {epochs}")
     from pfnet.data import prepare_dataset, read_manifest
     from pfnet.devices import inference_device
-    from pfnet.evaluation import SCALE, evaluate_predictions, render_evaluation_gallery
+    from pfnet.evaluation import evaluate_predictions, render_evaluation_gallery
     from pfnet.inference import predict_split
     from pfnet.io import other_kind
     from pfnet.reports import format_table, write_json
@@ -157,16 +199,16 @@ def run_demo(
     run_dir = fresh_folder(out / "run")
     started = time.monotonic()
 
-    _step(1, "data set")
+    say("\n[1/6] data set")
     source = choose_source(source, procedural=procedural)
     if (data_dir / "manifest.json").is_file():
-        print(f"reusing the data set in {data_dir} (delete it to rebuild)")
+        say(f"reusing the data set in {data_dir} (delete it to rebuild)")
     else:
-        print(f"building it from {source or 'procedural shapes'} into {data_dir}")
+        say(f"building it from {source or 'procedural shapes'} into {data_dir}")
         report = prepare_dataset(
             source, data_dir, points=points, seed=seed, count=count, progress=None
         )
-        print(report.summary())
+        say(report.summary())
     manifest = read_manifest(data_dir)
     empty = [n for n in ("train", "test") if not manifest["splits"].get(n, {}).get("total")]
     if empty:  # before minutes of training, not after them
@@ -175,9 +217,9 @@ def run_demo(
             "demo trains on one and completes the other: give it more shapes (--count)"
         )
 
-    _step(2, f"training the small PF-Net preset on {device}")
+    say(f"\n[2/6] training the small PF-Net preset on {device}")
     config = preset_config("small").replace(seed=seed)
-    print(f"run folder {run_dir}")
+    say(f"run folder {run_dir}")
     if epochs is not None:
         train(config.replace(epochs=epochs), data_dir, run_dir, device=device)
     else:
@@ -188,24 +230,24 @@ def run_demo(
         summary = train(config.replace(epochs=2), data_dir, run_dir, device=device)
         per_epoch = float(summary["final"].get("time_s") or 0.0)
         total = epochs_for_budget(budget - (time.monotonic() - t0), per_epoch, config.epochs)
-        print(f"an epoch takes {per_epoch:.1f} s after start-up: training {total} epochs in all")
+        say(f"an epoch takes {per_epoch:.1f} s after start-up: training {total} epochs in all")
         if total > 2:
             train(config.replace(epochs=total), data_dir, run_dir, device=device, resume=True)
     checkpoint = find_checkpoint(run_dir)
 
-    _step(3, "predicting the test split (deterministic test protocol)")
+    say("\n[3/6] predicting the test split (deterministic test protocol)")
     info = predict_split(checkpoint, data_dir, pred_dir, device=device)
     ratio = info["protocol"]["missing_ratio"]
 
-    _step(4, "evaluating")
+    say("\n[4/6] evaluating")
     evaluation = evaluate_predictions(pred_dir, data_dir, missing_ratio=ratio)
-    print("Pred→GT, GT→Pred, CD-L2, CD-L1 ×1000; F-score at distance 0.01 (missing region)")
-    print(format_table(evaluation))
+    say("Pred→GT, GT→Pred, CD-L2, CD-L1 ×1000; F-score at distance 0.01 (missing region)")
+    say(format_table(evaluation))
     metrics_path = out / "metrics.json"
     write_json(metrics_path, evaluation.report)
 
-    _step(5, "the shipped model on the same test split")
-    shipped = shipped_comparison(data_dir, int(manifest.get("points", points)))
+    say("\n[5/6] the shipped model on the same test split")
+    shipped = shipped_comparison(data_dir, int(manifest.get("points", points)), say)
     columns = {"this run": pred_dir}
     shipped_mean = None
     if shipped is not None:
@@ -215,9 +257,9 @@ def run_demo(
         write_json(out / "metrics-shipped.json", shipped_eval.report)
         shipped_mean = shipped_eval.report["mean"]
         columns[f"shipped {describe(shipped).removeprefix('shipped:')}"] = shipped_dir
-        print(comparison_table(evaluation.report["mean"], shipped_mean))
+        say(comparison_table(evaluation.report["mean"], shipped_mean))
 
-    _step(6, "rendering a gallery")
+    say("\n[6/6] rendering a gallery")
     gallery = render_evaluation_gallery(
         out / "gallery.png",
         evaluation,
@@ -229,27 +271,17 @@ def run_demo(
         columns=columns,
     )
 
-    minutes = (time.monotonic() - started) / 60.0
-    print(f"\ndone in {minutes:.1f} min. Everything is in {out}:")
-    print(f"  data set      {data_dir}  ({manifest.get('source', source or 'procedural')})")
-    print(f"  checkpoint    {checkpoint}")
-    print(f"  predictions   {pred_dir}/<category>/<name>.npy")
-    mean = evaluation.report["mean"]
-    print(
-        f"  metrics       {metrics_path}  (mean Pred→GT {mean['pred_to_gt']:.3f}, "
-        f"GT→Pred {mean['gt_to_pred']:.3f}, ×{SCALE})"
+    return DemoResult(
+        out=out,
+        minutes=(time.monotonic() - started) / 60.0,
+        data_dir=data_dir,
+        source=str(manifest.get("source", source or "procedural")),
+        checkpoint=checkpoint,
+        pred_dir=pred_dir,
+        metrics=metrics_path,
+        mean=evaluation.report["mean"],
+        gallery=Path(gallery),
+        shipped_metrics=None if shipped_mean is None else out / "metrics-shipped.json",
+        shipped_mean=shipped_mean,
+        licences=list(manifest.get("licenses") or []),
     )
-    if shipped_mean is not None:
-        print(
-            f"  shipped model {out / 'metrics-shipped.json'}  (mean Pred→GT "
-            f"{shipped_mean['pred_to_gt']:.3f}, GT→Pred {shipped_mean['gt_to_pred']:.3f})"
-        )
-    print(f"  gallery       {gallery}")
-    for licence in manifest.get("licenses") or []:
-        # One line per catalogue; the per-shape creators are in the data set's manifest.json.
-        print(
-            f"  data credit   {licence.get('catalogue')} ({licence.get('license')}), "
-            f"{len(licence.get('creators', []))} creators, see {data_dir / 'manifest.json'}"
-        )
-    print("next: pfnet complete your_scan.ply --out completed/   (the shipped model)")
-    print(f"      pfnet complete your_scan.ply --checkpoint {checkpoint} --out completed/")

@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--seed must be an integer in [0, 2**63), got {str(args.seed)[:40]}")
     if args.source is not None and not args.source.exists():
         raise ConfigError(f"--source {args.source} does not exist")
-    run_demo(
+    result = run_demo(
         args.out,
         minutes=args.minutes,
         epochs=args.epochs,
@@ -85,5 +85,37 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         seed=args.seed,
         gallery_count=args.gallery_count,
+        say=lambda line: print(line, flush=True),
     )
+    _print_summary(result)
     return 0
+
+
+def _print_summary(result) -> None:
+    """Where everything is, and what to run next."""
+    from pfnet.evaluation import SCALE
+
+    mean, shipped = result.mean, result.shipped_mean
+    print(f"\ndone in {result.minutes:.1f} min. Everything is in {result.out}:")
+    print(f"  data set      {result.data_dir}  ({result.source})")
+    print(f"  checkpoint    {result.checkpoint}")
+    print(f"  predictions   {result.pred_dir}/<category>/<name>.npy")
+    print(
+        f"  metrics       {result.metrics}  (mean Pred→GT {mean['pred_to_gt']:.3f}, "
+        f"GT→Pred {mean['gt_to_pred']:.3f}, ×{SCALE})"
+    )
+    if shipped is not None:
+        print(
+            f"  shipped model {result.shipped_metrics}  (mean Pred→GT "
+            f"{shipped['pred_to_gt']:.3f}, GT→Pred {shipped['gt_to_pred']:.3f})"
+        )
+    print(f"  gallery       {result.gallery}")
+    for licence in result.licences:
+        # One line per catalogue; the per-shape creators are in the data set's manifest.json.
+        print(
+            f"  data credit   {licence.get('catalogue')} ({licence.get('license')}), "
+            f"{len(licence.get('creators', []))} creators, "
+            f"see {result.data_dir / 'manifest.json'}"
+        )
+    print("next: pfnet complete your_scan.ply --out completed/   (the shipped model)")
+    print(f"      pfnet complete your_scan.ply --checkpoint {result.checkpoint} --out completed/")
