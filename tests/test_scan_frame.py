@@ -74,7 +74,9 @@ def test_scan_normalisation_is_the_partials_own_frame():
 def test_frame_is_a_model_setting_with_a_clear_error():
     assert ModelConfig().frame == "shape"  # model files without the key: the paper's frame
     assert ModelConfig(frame="scan").frame == "scan"
-    with pytest.raises(ConfigError, match=r"frame must be one of shape, scan, aligned; got 'world'"):
+    with pytest.raises(
+        ConfigError, match=r"frame must be one of shape, scan, aligned; got 'world'"
+    ):
         ModelConfig(frame="world")
 
 
@@ -272,3 +274,22 @@ def test_an_aligned_model_completes_any_heading_alike(tmp_path):
     turn = up_rotation(1.1, 1)
     turned = pfnet.complete(scan @ turn.T, str(path), runtime="torch", device="cpu")
     np.testing.assert_allclose(turned.missing, first.missing @ turn.T, atol=1e-4)
+
+
+def test_complete_command_keeps_a_survey_scan_in_double(scan_model, tmp_path):
+    from pfnet.cli import main
+    from pfnet.io import read_point_cloud, write_ply
+
+    scan = _scan() + [512_345.0, 5_412_345.0, 230.0]  # float64, UTM-like
+    write_ply(tmp_path / "survey.ply", scan)
+    assert b"property double x" in (tmp_path / "survey.ply").read_bytes()[:300]
+    out = tmp_path / "out"
+    args = ["complete", str(tmp_path / "survey.ply"), "--checkpoint", str(scan_model)]
+    assert main([*args, "--out", str(out), "--device", "cpu"]) == 0
+    completed = read_point_cloud(out / "survey_completed.ply", keep_float64=True)
+    assert completed.dtype == np.float64
+    assert completed[: len(scan)].tobytes() == scan.tobytes()
+    import pfnet
+
+    expected = pfnet.complete(scan, str(scan_model), runtime="torch", device="cpu").missing
+    np.testing.assert_allclose(completed[len(scan) :], expected, atol=1e-6)

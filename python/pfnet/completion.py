@@ -21,7 +21,8 @@ For each partial cloud (an array, or a ``.ply .xyz .pts .txt .npy .pcd`` file, s
    grey, followed by the predicted points, yellow).
 
 Input points are never moved or dropped: the completed cloud starts with exactly the
-coordinates given (or that :func:`pfnet.io.read_point_cloud` returned).
+coordinates given (or that :func:`pfnet.io.read_point_cloud` returned, float64 kept where the
+file holds float64 or text: the PLY outputs are then written in double).
 """
 
 from __future__ import annotations
@@ -391,7 +392,7 @@ def _complete_batches(model, inputs, out_dir, pose, batch_size, device, on_skip,
         paths, clouds = [], []
         for path in inputs[start : start + batch_size]:
             try:
-                cloud = read_point_cloud(path)
+                cloud = read_point_cloud(path, keep_float64=True)
                 normalisation(cloud, str(path))  # reject degenerate clouds before batching
             except DataError as err:
                 failed.append(str(err))

@@ -227,7 +227,8 @@ def write_ply(
 
     Args:
         path: Destination file.
-        points: ``(N, 3)`` coordinates, stored as float32 ``x y z`` vertex properties.
+        points: ``(N, 3)`` coordinates, stored as float32 ``x y z`` vertex properties, or
+            as double for a float64 array (a survey scan's coordinates keep their precision).
         colors: Optional ``(N, 3)`` colours, either uint8 or floats in ``[0, 1]``; stored as
             uchar ``red green blue``.
 
@@ -239,7 +240,9 @@ def write_ply(
         raise DataError(f"write_ply: points must have shape (N, 3), got {pts.shape} for {path}")
     if not np.issubdtype(pts.dtype, np.number) or not np.isfinite(pts).all():
         raise DataError(f"write_ply: points must be finite numbers for {path}")
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    wide = pts.dtype == np.float64
+    kind, ply_type = ("<f8", "double") if wide else ("<f4", "float")
+    fields = [("x", kind), ("y", kind), ("z", kind)]
     if colors is not None:
         rgb = np.asarray(colors)
         if rgb.shape != pts.shape:
@@ -253,7 +256,7 @@ def write_ply(
     vertex["x"], vertex["y"], vertex["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
     header = ["ply", "format binary_little_endian 1.0", "comment written by pfnet"]
     header.append(f"element vertex {len(pts)}")
-    header += ["property float x", "property float y", "property float z"]
+    header += [f"property {ply_type} {axis}" for axis in "xyz"]
     if colors is not None:
         vertex["red"], vertex["green"], vertex["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
         header += ["property uchar red", "property uchar green", "property uchar blue"]
