@@ -81,3 +81,14 @@ def test_pfnet_models_and_the_model_card_agree_on_the_sizes(capsys):
     card = (DOCS / "models.md").read_text(encoding="utf-8")
     assert "1,536 points in, the missing 512 (25 %) out" in card
     assert "1,536 points in, the missing 512 out" in README.read_text(encoding="utf-8")
+
+
+def test_the_model_cards_page_is_generated_from_the_model_files():
+    """docs/models.md's cards section is what benchmarks/model_cards.py makes of the shipped
+    files' metadata (regenerate it with the script when a model changes)."""
+    pytest.importorskip("safetensors")
+    from scripts import load_script
+
+    cards = load_script("model_cards")
+    assert cards.page_section(DOCS / "models.md") == cards.section()
+    assert "1,536 points in, the missing 512 out" in cards.section()
