@@ -4,6 +4,7 @@ class 7)."""
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -88,3 +89,19 @@ def test_a_pickled_pt_is_one_line_without_a_torch_warning(tmp_path, capsys):
     assert "unpickled" not in captured.out
     assert captured.err.strip().splitlines() == [captured.err.strip()]
     assert "cannot be read" in captured.err and "Warning" not in captured.err
+
+
+def test_a_file_named_like_a_shipped_model_does_not_replace_it(tmp_path, monkeypatch):
+    from pfnet.errors import ConfigError
+    from pfnet.shipped import DEFAULT_MODEL, WEIGHTS_DIR, resolve_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    shipped = WEIGHTS_DIR / f"{DEFAULT_MODEL}.safetensors"
+    assert resolve_checkpoint(DEFAULT_MODEL) == shipped
+    (tmp_path / DEFAULT_MODEL).write_bytes(b"someone else's")
+    with pytest.raises(ConfigError, match=r"both a file in this folder and a shipped model"):
+        resolve_checkpoint(DEFAULT_MODEL)
+    assert resolve_checkpoint(f"./{DEFAULT_MODEL}") == Path(DEFAULT_MODEL)
+    assert resolve_checkpoint(f"shipped:{DEFAULT_MODEL}") == shipped
+    with pytest.raises(ConfigError, match=r"no shipped model 'nope'"):
+        resolve_checkpoint("shipped:nope")

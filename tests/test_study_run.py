@@ -5,9 +5,12 @@ from __future__ import annotations
 import json
 
 import pytest
-from scripts import load_script
 
-from pfnet.study.runs import StudyRun, run_config, study_config
+pytest.importorskip("torch")  # the study's runs are training runs (the light install has none)
+
+from scripts import load_script  # noqa: E402
+
+from pfnet.study.runs import StudyRun, run_config, study_config  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -94,19 +94,34 @@ def shipped_models() -> list[ShippedModel]:
 def resolve_checkpoint(value: str | os.PathLike[str] | None) -> Path:
     """The file behind a ``--checkpoint`` value: an existing path, else a shipped model's name.
 
-    ``None`` means the default shipped model.
+    ``None`` means the default shipped model; ``shipped:NAME`` only ever the shipped model.
+    A bare name that is both a file here and a shipped model is refused (the file once
+    replaced the model silently).
 
     Raises:
         ConfigError: Neither a file nor a shipped model's name.
     """
     if value is None:
         value = DEFAULT_MODEL
-    path = Path(value)
-    if path.is_file():
-        return path
     name = str(value)
+    if name.startswith("shipped:"):  # as outputs name it: only ever the shipped model
+        name = name[len("shipped:") :]
+        candidate = WEIGHTS_DIR / f"{name}{SUFFIX}"
+        if os.sep not in name and "/" not in name and candidate.is_file():
+            return candidate
+        names = ", ".join(model.name for model in shipped_models()) or "none"
+        raise ConfigError(f"no shipped model {name!r} (shipped: {names})")
+    path = Path(value)
     candidate = WEIGHTS_DIR / f"{name}{SUFFIX}"
-    if os.sep not in name and "/" not in name and candidate.is_file():
+    shipped = os.sep not in name and "/" not in name and candidate.is_file()
+    if path.is_file():
+        if shipped:  # a file in the working folder would silently replace the shipped model
+            raise ConfigError(
+                f"checkpoint {name!r} is both a file in this folder and a shipped model; "
+                f"name the file ./{name}, or the model shipped:{name}"
+            )
+        return path
+    if shipped:
         return candidate
     if path.exists():
         raise ConfigError(f"checkpoint {path} is not a file")
