@@ -19,9 +19,10 @@ from pfnet.models import build_model  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 
 
-def make_checkpoint(path, n_points: int, model: str = "pfnet", seed: int = 0):
-    """An untrained but deterministic small model saved as a pfnet checkpoint."""
-    config = preset_config("small").replace(n_points=n_points, model=model)
+def make_checkpoint(path, n_points: int, model: str = "pfnet", seed: int = 0, frame: str = "shape"):
+    """An untrained but deterministic small model saved as a pfnet checkpoint (in the
+    paper's shape frame unless ``frame`` says otherwise)."""
+    config = preset_config("small").replace(n_points=n_points, model=model, frame=frame)
     torch.manual_seed(seed)
     generator = build_model(config).eval()
     save_checkpoint(path, {"config": config.to_dict(), "model": generator.state_dict()})
@@ -198,3 +199,22 @@ def test_two_runs_into_one_folder_never_mix(tmp_path, tiny_dataset, checkpoint, 
             data_dir=tiny_dataset,
         )
     assert main([*args, "--device", "cpu"]) == 0  # the folder is free again
+
+
+@pytest.mark.parametrize("frame", ["scan", "aligned"])
+def test_predict_gives_a_scan_frame_model_each_partial_in_its_own_frame(
+    tmp_path, tiny_dataset, frame
+):
+    from pfnet.completion import complete_clouds
+
+    n_points = load_split(tiny_dataset, "test").points.shape[1]
+    generator, config = make_checkpoint(tmp_path / "scan.pt", n_points, frame=frame)
+    record = predict_split(tmp_path / "scan.pt", tiny_dataset, tmp_path / "pred", device="cpu")
+    assert record["protocol"]["input_frame"] == frame
+    clouds = load_split(tiny_dataset, "test")
+    partial, _ = test_protocol_crop(np.asarray(clouds.points), config.missing_ratio)
+    # what `complete` returns for the same partial, in the data set's frame
+    expected = complete_clouds(generator, list(partial), frame=frame)
+    for i, (cat, name) in enumerate(zip(clouds.category, clouds.name, strict=True)):
+        pred = np.load(tmp_path / "pred" / str(cat) / f"{name}.npy")
+        np.testing.assert_allclose(pred, expected[i], atol=1e-5)

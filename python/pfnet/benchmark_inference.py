@@ -60,7 +60,7 @@ def predict_benchmark(
     written for it, its message is in the record's ``skipped`` (the first
     :data:`MAX_SKIPPED_LISTED`) and ``n_skipped``.
     """
-    from pfnet.completion import network_input, normalisation
+    from pfnet.completion import input_frame, network_input
     from pfnet.data import load_split
     from pfnet.io import refuse_overlap, save_npy
     from pfnet.protocols import get_protocol, shapenet_crop
@@ -115,6 +115,7 @@ def predict_benchmark(
         partials = load_partials(data_dir, split, len(clouds))
     loaded = load_generator(checkpoint, runtime=runtime, device=device)
     model, config, device = loaded.model, loaded.config, loaded.device
+    frame = getattr(config, "frame", "shape")
     n_input = int(model.n_points) - int(model.n_missing)
     files = run_files(clouds.category, clouds.name, chosen.suffixes)
     open_prediction_folder(
@@ -133,7 +134,7 @@ def predict_benchmark(
             rows = []  # (scan, its normalisation, key); a degenerate scan is skipped, named
             for p, k in zip(partials[start:stop], keys, strict=True):
                 try:
-                    rows.append((p, normalisation(p, f"{k[0]} (partial scan)"), k[0]))
+                    rows.append((p, input_frame(p, frame, f"{k[0]} (partial scan)"), k[0]))
                 except DataError as err:
                     skipped.append(str(err))
                     skipped_keys.add(k[0])
@@ -148,9 +149,17 @@ def predict_benchmark(
             continue
         for view in range(chosen.views):
             crops = shapenet_crop(np.asarray(clouds.points[start:stop]), ratio, view)
-            batch = np.stack([network_input(c, n_input) for c in crops])
+            # a scan-frame model sees each crop in its own frame, mapped back after
+            frames = [None if frame == "shape" else input_frame(c, frame) for c in crops]
+            batch = np.stack(
+                [
+                    network_input(c if f is None else f.apply(c), n_input)
+                    for c, f in zip(crops, frames, strict=True)
+                ]
+            )
             detail = predict_missing(model, batch, batch_size, device)
-            for c, d, k in zip(crops, detail, keys, strict=True):
+            for c, f, d, k in zip(crops, frames, detail, keys, strict=True):
+                d = d if f is None else f.invert(d)
                 save_npy(out / f"{k[view]}.npy", np.concatenate([c, d]).astype(np.float32))
             n_predicted = int(detail.shape[1])
     if len(skipped) == len(clouds):
@@ -245,6 +254,7 @@ def predict_kitti(
     inputs = [kitti_input(p, b, k) for p, b, k in zip(partials, boxes, keys, strict=True)]
     loaded = load_generator(checkpoint, runtime=runtime, device=device)
     model, config, device = loaded.model, loaded.config, loaded.device
+    frame = getattr(config, "frame", "shape")
     n_input = int(model.n_points) - int(model.n_missing)
     files = run_files(cars.category, cars.name)
     open_prediction_folder(
@@ -254,7 +264,7 @@ def predict_kitti(
     for start in range(0, len(cars), chunk):
         stop = min(start + chunk, len(cars))
         given = inputs[start:stop]
-        transforms = [_car_normalisation(p) for p in given]
+        transforms = [_car_normalisation(p, frame) for p in given]
         batch = np.stack(
             [network_input(t.apply(p), n_input) for p, t in zip(given, transforms, strict=True)]
         )
@@ -290,13 +300,15 @@ def predict_kitti(
     )
 
 
-def _car_normalisation(points: np.ndarray):
-    """The unit ball of a pose-normalised car, as ``complete`` normalises a scan; for a car
-    whose points all coincide (a single LiDAR return), a ball of radius 0.5 around them, half
-    the car's length in this frame."""
-    from pfnet.data.sampling import Normalisation, unit_ball
+def _car_normalisation(points: np.ndarray, frame: str = "scan"):
+    """The unit ball of a pose-normalised car, as ``complete`` normalises a scan (turned to
+    its main horizontal axis for an ``aligned`` model); for a car whose points all coincide
+    (a single LiDAR return), a ball of radius 0.5 around them, half the car's length in this
+    frame."""
+    from pfnet.data.sampling import unit_ball
+    from pfnet.data.scan_frame import ScanFrame, scan_frame
 
-    transform = unit_ball(points)
-    if transform is None:
-        return Normalisation(centre=np.asarray(points, np.float64).mean(axis=0), radius=0.5)
-    return transform
+    if unit_ball(points) is None:
+        centre = np.asarray(points, np.float64).mean(axis=0)
+        return ScanFrame(centre=centre, radius=0.5, rotation=np.eye(3))
+    return scan_frame(points, aligned=frame == "aligned")

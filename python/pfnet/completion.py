@@ -56,6 +56,23 @@ def normalisation(points: np.ndarray, source: str = "input") -> Normalisation:
     return transform
 
 
+def input_frame(points: np.ndarray, frame: str, source: str = "input") -> Any:
+    """The frame a model of ``frame`` sees a partial cloud in, as a
+    :class:`pfnet.data.scan_frame.ScanFrame` (``apply`` / ``invert``).
+
+    Every path that normalises an input by itself (``complete``, ``predict`` of a scan-frame
+    model, the PCN and KITTI protocols) goes through here, so that an ``aligned`` model is
+    turned to the partial's main horizontal axis wherever it runs.
+
+    Raises:
+        DataError: If all points coincide (no scale to normalise by).
+    """
+    from pfnet.data.scan_frame import scan_frame
+
+    normalisation(points, source)
+    return scan_frame(points, aligned=frame == "aligned")
+
+
 def network_input(points: np.ndarray, n_input: int) -> np.ndarray:
     """Resample a normalised ``(N, 3)`` cloud to exactly ``n_input`` points.
 
@@ -107,15 +124,13 @@ def complete_clouds(
         DataError: The model's output is not finite points of the expected shape
             (:func:`pfnet.inference.check_detail`).
     """
-    from pfnet.data.scan_frame import scan_frame, to_y_up
+    from pfnet.data.scan_frame import to_y_up
     from pfnet.inference import predict_missing
 
     turn = to_y_up(up)
     n_input = int(model.n_points) - int(model.n_missing)
     turned = [np.asarray(c, np.float64) @ turn.T for c in clouds]
-    for cloud in turned:
-        normalisation(cloud)  # DataError for a degenerate cloud
-    transforms = [scan_frame(c, aligned=frame == "aligned") for c in turned]
+    transforms = [input_frame(c, frame) for c in turned]
     batch = np.stack(
         [network_input(t.apply(c), n_input) for c, t in zip(turned, transforms, strict=True)]
     )

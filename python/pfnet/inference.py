@@ -180,9 +180,19 @@ def predict_split(
         )
     config.replace(missing_ratio=ratio)  # ConfigError unless 1 to N - 4 points are removed
     partial, removed = test_protocol_crop(points, ratio)
-    detail = predict_missing(
-        model, np.asarray(partial, dtype=np.float32), batch_size, device, source=checkpoint
-    )
+    frame = getattr(config, "frame", "shape")
+    if frame == "shape":  # the paper's protocol: the partial in the complete shape's frame
+        detail = predict_missing(
+            model, np.asarray(partial, dtype=np.float32), batch_size, device, source=checkpoint
+        )
+    else:  # a scan-frame model sees each partial in its own frame, as `complete` shows it
+        from pfnet.completion import input_frame
+
+        frames = [input_frame(p, frame, f"sample {i}") for i, p in enumerate(partial)]
+        batch = np.stack([f.apply(p) for f, p in zip(frames, partial, strict=True)])
+        detail = predict_missing(model, batch, batch_size, device, source=checkpoint)
+        detail = np.stack([f.invert(d) for f, d in zip(frames, detail, strict=True)])
+        detail = detail.astype(np.float32)
 
     out = Path(out_dir)
     files = run_files(clouds.category, clouds.name)
@@ -210,6 +220,7 @@ def predict_split(
             "n_points": int(points.shape[1]),
             "n_missing": int(removed.shape[1]),
             "viewpoint": "VIEWPOINTS[i % 5] for sample i in split order",
+            "input_frame": frame,
         },
         model={
             "name": config.model,
