@@ -105,3 +105,25 @@ def test_a_file_named_like_a_shipped_model_does_not_replace_it(tmp_path, monkeyp
     assert resolve_checkpoint(f"shipped:{DEFAULT_MODEL}") == shipped
     with pytest.raises(ConfigError, match=r"no shipped model 'nope'"):
         resolve_checkpoint("shipped:nope")
+
+
+@pytest.mark.parametrize(
+    ("source", "name", "said"),
+    [
+        ("sh3d-small.onnx", "m.pt", "m.pt is an ONNX model, not a PyTorch checkpoint"),
+        ("sh3d-small.safetensors", "m.pt", "is a safetensors model file, not a PyTorch"),
+        ("zip", "m.safetensors", "is a PyTorch checkpoint, not a safetensors model file"),
+        ("zip", "m.onnx", "m.onnx is a PyTorch checkpoint, not an ONNX model"),
+    ],
+)
+def test_a_model_file_with_the_wrong_suffix_is_named_as_what_it_is(tmp_path, source, name, said):
+    from pfnet.errors import ConfigError
+    from pfnet.shipped import WEIGHTS_DIR, resolve_checkpoint
+
+    path = tmp_path / name
+    if source == "zip":  # what torch.save writes starts as a zip archive
+        path.write_bytes(b"PK\x03\x04" + bytes(60))
+    else:
+        path.write_bytes((WEIGHTS_DIR / source).read_bytes())
+    with pytest.raises(ConfigError, match=rf"{said}.*; rename it to m\."):
+        resolve_checkpoint(path)

@@ -120,6 +120,7 @@ def resolve_checkpoint(value: str | os.PathLike[str] | None) -> Path:
                 f"checkpoint {name!r} is both a file in this folder and a shipped model; "
                 f"name the file ./{name}, or the model shipped:{name}"
             )
+        check_model_kind(path)
         return path
     if shipped:
         return candidate
@@ -132,6 +133,56 @@ def resolve_checkpoint(value: str | os.PathLike[str] | None) -> Path:
         f"no checkpoint file {name!r} and no shipped model of that name (shipped: {names}; "
         f"list them with `pfnet models`)"
     )
+
+
+# What each kind of model file is called, and the suffix that makes pfnet read it as such.
+_KINDS = {
+    "pytorch": ("a PyTorch checkpoint", ".pt"),
+    "safetensors": ("a safetensors model file", SUFFIX),
+    "onnx": ("an ONNX model", ".onnx"),
+}
+
+
+def model_file_kind(path: Path) -> str | None:
+    """What the first bytes of ``path`` say it is: ``pytorch`` (a zip), ``safetensors`` (a
+    length, then a JSON header), ``onnx`` (a protobuf starting with its IR version) or
+    ``None`` when they say none of these for sure (an old pickled checkpoint, junk)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+            size = os.fstat(fh.fileno()).st_size
+    except OSError:
+        return None
+    if head[:4] == b"PK\x03\x04":
+        return "pytorch"
+    if len(head) > 8 and head[8:9] == b"{" and int.from_bytes(head[:8], "little") < size:
+        return "safetensors"
+    if (
+        len(head) > 2
+        and head[0] == 0x08
+        and head[1] < 0x80
+        and head[2] in b"\x12\x1a\x22\x28\x3a\x42"
+    ):
+        return "onnx"
+    return None
+
+
+def check_model_kind(path: Path) -> None:
+    """Refuse a model file whose suffix says another kind than its bytes (an ONNX model named
+    ``.pt`` was reported as an unreadable checkpoint, a ``.pt`` named ``.safetensors`` as a
+    header error).
+
+    Raises:
+        ConfigError: Naming the file, what it is and the suffix to give it.
+    """
+    expected = {SUFFIX: "safetensors", ".onnx": "onnx"}.get(path.suffix.lower(), "pytorch")
+    kind = model_file_kind(path)
+    if kind is not None and kind != expected:
+        what, suffix = _KINDS[kind]
+        raise ConfigError(
+            f"{path} is {what}, not {_KINDS[expected][0]} as its name says; rename it to "
+            f"{path.with_suffix(suffix).name}"
+        )
 
 
 def describe(path: Path) -> str:
