@@ -242,6 +242,14 @@ def _lock(out: Path) -> None:
     _LOCKS[key] = take(key, "writing predictions into")
 
 
+def release_folders() -> None:
+    """Let go of every prediction folder this process holds: a run that stopped between
+    :func:`open_prediction_folder` and :func:`write_record` (Ctrl-C, a refused output) would
+    otherwise keep its folder locked against this process's next evaluate or predict."""
+    for key in list(_LOCKS):
+        os.close(_LOCKS.pop(key))
+
+
 def _unlock(out: Path) -> None:
     fd = _LOCKS.pop(out.resolve(), None)
     if fd is not None:

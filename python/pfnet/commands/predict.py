@@ -84,10 +84,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {args.out} is a training run; name another folder")
     _check_gallery(args)
     from pfnet.locks import reading
+    from pfnet.prediction_folder import release_folders
 
     # the data set is held while it is read: a prepare --overwrite meanwhile is refused
-    with reading(args.data, "predicting from"):
-        return _run(args)
+    try:
+        with reading(args.data, "predicting from"):
+            return _run(args)
+    finally:  # an interrupted run lets go of its --out too (main may be called again)
+        release_folders()
 
 
 def _run(args: argparse.Namespace) -> int:
