@@ -41,6 +41,50 @@ def _data_summary(data: Path) -> dict:
     }
 
 
+def _scan_card(path: Path) -> dict:
+    """The scan protocol's figures for the card, from a JSON of benchmarks/scan_protocol.py."""
+    document = json.loads(path.read_text())
+    results = document["results"]
+    model = results["complete (scan protocol)"]
+    mirror = results["mirror of the input (learns nothing)"]
+    return {
+        "data": f"{Path(document['data']).name} {document['split']} split, "
+        f"{document['missing_ratio']:.0%} missing, each scan turned, scaled and moved at random, "
+        f"{document['up']}-up, through pfnet complete",
+        "up": document["up"],
+        "cd_l2": model["mean"]["cd_l2"],
+        "f_score": model["mean"]["f_score"],
+        "categories": {
+            c: {k: v[k] for k in ("cd_l2", "f_score")} for c, v in model["categories"].items()
+        },
+        "mirror": {"cd_l2": mirror["mean"]["cd_l2"], "f_score": mirror["mean"]["f_score"]},
+        "f_wins_over_mirror": document["f_wins_over_mirror"],
+        "categories_scored": len(model["categories"]),
+    }
+
+
+def _card_rest(args, mean, evaluation, test, manifest) -> dict:
+    """Everything of the card after its summary and scan figures."""
+    rest = {
+        "recipe": args.recipe,
+        "train_data": _data_summary(args.train_data),
+        "test": {
+            "data": f"{args.test_data.name} test split ({len(test)} shapes, never trained "
+            "on), 25 % missing, the paper's protocol (the complete shape's frame), mean over "
+            "categories",
+            "pred_to_gt": mean["pred_to_gt"],
+            "gt_to_pred": mean["gt_to_pred"],
+            "cd_l2": mean["pred_to_gt"] + mean["gt_to_pred"],
+            "f_score": mean["f_score"],
+            "categories": evaluation.report["categories"],
+        },
+    }
+    if args.pretrain_data is not None:
+        rest["pretrain_data"] = _data_summary(args.pretrain_data)
+    rest["credits"] = manifest.get("credits") or {}
+    return rest
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("checkpoint", type=Path, help="best.pt of pfnet train, or a model file")
@@ -51,6 +95,14 @@ def main(argv: list[str] | None = None) -> int:
         "--pretrain-data",
         type=Path,
         help="data set the run's --init-from weights were trained on (recorded in the card)",
+    )
+    parser.add_argument(
+        "--scan-protocol",
+        type=Path,
+        action="append",
+        default=[],
+        help="a JSON of benchmarks/scan_protocol.py measured on this model (y-up, then z-up): "
+        "the card's first figures, what `pfnet complete` gets",
     )
     parser.add_argument("--summary", required=True, help="one line for `pfnet models`")
     parser.add_argument("--recipe", required=True, help="how it was trained (the command)")
@@ -71,23 +123,10 @@ def main(argv: list[str] | None = None) -> int:
         evaluation = evaluate_predictions(pred, args.test_data, missing_ratio=0.25)
     mean = evaluation.report["mean"]
     manifest = read_manifest(args.train_data)
-    card: dict = {
-        "summary": args.summary,
-        "recipe": args.recipe,
-        "train_data": _data_summary(args.train_data),
-        "test": {
-            "data": f"{args.test_data.name} test split ({len(test)} shapes, never trained "
-            "on), 25 % missing, mean over categories",
-            "pred_to_gt": mean["pred_to_gt"],
-            "gt_to_pred": mean["gt_to_pred"],
-            "cd_l2": mean["pred_to_gt"] + mean["gt_to_pred"],
-            "f_score": mean["f_score"],
-            "categories": evaluation.report["categories"],
-        },
-        "credits": manifest.get("credits") or {},
-    }
-    if args.pretrain_data is not None:
-        card["pretrain_data"] = _data_summary(args.pretrain_data)
+    card: dict = {"summary": args.summary}
+    if args.scan_protocol:  # first: what `pfnet complete` gets
+        card["scan"] = [_scan_card(path) for path in args.scan_protocol]
+    card.update(_card_rest(args, mean, evaluation, test, manifest))
     write_shipped(args.checkpoint, out, card=card)
     size = out.stat().st_size / 1e6
     print(json.dumps({k: v for k, v in card.items() if k != "credits"}, indent=2))

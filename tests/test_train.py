@@ -360,8 +360,23 @@ def test_the_learning_rate_schedule_per_step() -> None:
     epochs = preset_config("paper")  # the authors' epochs 30 and 80
     assert [alpha_at(epochs, e, 10**6) for e in (29, 30, 80)] == [0.01, 0.05, 0.1]
     # The published small runs: 12 steps an epoch, StepLR every 40 of 200 epochs.
-    note = schedule_note(preset_config("small").replace(epochs=200, lr_step=40), 12)
+    fixed = preset_config("small").replace(epochs=200, lr_step=40, schedule="fixed")
+    note = schedule_note(fixed, 12)
     assert note is not None and note.startswith("only 480 of the run's 2400 optimiser steps")
+    # the small preset's own schedule is sized to whatever --epochs it gets
+    sized = preset_config("small").replace(epochs=100)
+    assert sized.schedule == "run"
+    note = schedule_note(sized, 12)
+    assert note is not None and "only 600 of the run's 1200" in note and "0.5 of 100 epochs" in note
+    optimizer = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+    scheduler = make_scheduler(optimizer, sized.replace(lr=1.0))
+    per_epoch = []
+    for _ in range(100):
+        per_epoch.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert per_epoch[49] == 1.0 and per_epoch[50] == 0.2 and per_epoch[75] == pytest.approx(0.04)
+    assert [alpha_at(sized, e, 0) for e in (0, 14, 15, 40, 99)] == [0.01, 0.01, 0.05, 0.1, 0.1]
     assert schedule_note(config.replace(steps=10_000), 12) is None
     assert schedule_note(preset_config("paper"), 340) is None  # ShapeNet-Part: 13,600 steps
 

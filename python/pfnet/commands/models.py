@@ -34,15 +34,39 @@ def run(args: argparse.Namespace) -> int:
         print(f"{model.name}{default}")
         print(f"  {card.get('summary', '')}".rstrip())
         print(f"  network   {_network_line(config)}; {model.size_mb:.1f} MB")
+        print(f"  frame     {_frame_line(config)}")
+        for scan in card.get("scan") or []:
+            if isinstance(scan, dict):
+                mirror = scan.get("mirror") or {}
+                print(
+                    f"  scans     {scan.get('data', '?')}: Pred->GT + GT->Pred x1000 "
+                    f"{scan.get('cd_l2', float('nan')):.2f}, "
+                    f"F-score@0.01 {scan.get('f_score', float('nan')):.3f} "
+                    f"(a mirror of the input: {mirror.get('cd_l2', float('nan')):.2f}, "
+                    f"{mirror.get('f_score', float('nan')):.3f})"
+                )
         test = card.get("test")
         if isinstance(test, dict):
             print(
-                f"  test      {test.get('data', '?')}: Pred->GT + GT->Pred x1000 "
+                f"  paper     {test.get('data', '?')}: Pred->GT + GT->Pred x1000 "
                 f"{test.get('cd_l2', float('nan')):.2f}, "
                 f"F-score@0.01 {test.get('f_score', float('nan')):.3f}"
             )
         print(f"  use       pfnet complete SCAN.ply --checkpoint {model.name} --out DIR")
     return 0
+
+
+def _frame_line(config: dict) -> str:
+    """The frame the model's input is given in (:data:`pfnet.models.config.FRAMES`)."""
+    frame = config.get("frame", "shape")
+    return {
+        "shape": "shape: trained in the complete shape's frame (the paper's protocol); "
+        "scans, which lack it, complete worse",
+        "scan": "scan: trained on partials in their own centroid and radius, as complete "
+        "gives them",
+        "aligned": "aligned: trained on partials in their own frame, turned to their main "
+        "horizontal axis, as complete gives them",
+    }.get(frame, str(frame))
 
 
 def _network_line(config: dict) -> str:

@@ -18,6 +18,7 @@ from pfnet.training.config import (
     CHAMFER_KINDS,
     PRECISIONS,
     PRESETS,
+    SCHEDULES,
     TRAIN_CROPS,
     TrainConfig,
     load_config,
@@ -74,6 +75,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=tuple(PRESETS), help="base configuration (paper)")
     parser.add_argument("--config", type=Path, help="TOML file of config keys over the preset")
     parser.add_argument("--crop", choices=TRAIN_CROPS, help="training crop (default viewpoint)")
+    parser.add_argument(
+        "--schedule",
+        choices=SCHEDULES,
+        help="a run in epochs: fixed, StepLR every --lr-step epochs (the paper preset), or "
+        "run, the learning rate x --lr-gamma at 50 %% and 75 %% of the epochs (the small "
+        "preset: any --epochs gets a schedule sized to it)",
+    )
     parser.add_argument(
         "--frame",
         choices=FRAMES,

@@ -26,6 +26,8 @@ TRAIN_CROPS = ("viewpoint", "sphere", "multi")
 # The Chamfer terms of the loss: mean squared distances (the paper) or mean distances.
 CHAMFER_KINDS = ("l2", "l1")
 PRECISIONS = ("fp32", "bf16")
+# A run in epochs: the paper's fixed StepLR / α epochs, or milestones sized to the run.
+SCHEDULES = ("fixed", "run")
 # Fields that may change when a run is resumed; every other field must match the checkpoint.
 # (How a run executes may change; what it learns from may not.)
 MAX_WORKERS = 64  # data-loader processes of one run
@@ -57,7 +59,12 @@ class TrainConfig(ModelConfig):
         betas: Adam betas.
         eps: Adam epsilon.
         weight_decay: Adam weight decay (L2, as in ``torch.optim.Adam``).
-        lr_step: StepLR period in epochs.
+        lr_step: StepLR period in epochs (``schedule = "fixed"``).
+        schedule: How a run sized in epochs schedules its learning rate and α: ``fixed``
+            (StepLR every ``lr_step`` epochs, α from ``alpha_schedule``: the paper's, whatever
+            the run's length) or ``run`` (``lr_milestones`` and ``alpha_fractions`` as
+            fractions of the run's epochs, so any ``--epochs`` gets a schedule sized to it).
+            A run sized in ``steps`` always reads them as fractions of its steps.
         lr_gamma: StepLR factor.
         alpha_schedule: ``((first_epoch, alpha), ...)``: α of Eq. (2) from each epoch on.
         steps: Size the run in optimiser steps instead of ``epochs`` (``None``: epochs, as
@@ -108,6 +115,7 @@ class TrainConfig(ModelConfig):
     eps: float = 1e-5
     weight_decay: float = 1e-3
     lr_step: int = 40
+    schedule: str = "fixed"
     lr_gamma: float = 0.2
     alpha_schedule: tuple[tuple[int, float], ...] = field(
         default=((0, 0.01), (30, 0.05), (80, 0.1))
@@ -312,6 +320,7 @@ def _validate(c: TrainConfig) -> None:
         c.steps,
         f"an integer in [1, {MAX_STEPS:,}] (or unset: the run is sized in epochs)",
     )
+    require(c.schedule in SCHEDULES, "schedule", c.schedule, f"one of {', '.join(SCHEDULES)}")
     milestones = c.lr_milestones
     require(
         isinstance(milestones, tuple)
@@ -410,5 +419,8 @@ PRESETS: dict[str, TrainConfig] = {
         workers=0,
         # What `pfnet complete` gives a network: the partial's own centroid and radius.
         frame="scan",
+        # Any --epochs gets its learning-rate drops at 50 % and 75 % of the run (StepLR
+        # every 20 epochs left a 100-epoch run at 1/3125 of its rate).
+        schedule="run",
     ),
 }

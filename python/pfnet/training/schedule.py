@@ -28,6 +28,10 @@ def make_scheduler(
     then ``lr`` multiplied by ``lr_gamma`` at each of ``lr_milestones`` (fractions of
     ``steps``).
     """
+    if config.steps is None and config.schedule == "run":
+        return torch.optim.lr_scheduler.MultiStepLR(
+            optimizer, milestones=_epoch_milestones(config), gamma=config.lr_gamma
+        )
     if config.steps is None:
         return torch.optim.lr_scheduler.StepLR(
             optimizer, step_size=config.lr_step, gamma=config.lr_gamma
@@ -42,11 +46,16 @@ def make_scheduler(
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
 
 
+def _epoch_milestones(config: TrainConfig) -> list[int]:
+    """The epochs at which a ``schedule = "run"`` run drops its learning rate (at least 1)."""
+    return [max(1, round(f * config.epochs)) for f in config.lr_milestones]
+
+
 def alpha_at(config: TrainConfig, epoch: int, step: int) -> float:
     """α of Eq. (2) at 0-based ``epoch`` (epoch runs) or global ``step`` (step runs)."""
-    if config.steps is None:
+    if config.steps is None and config.schedule == "fixed":
         return alpha_for_epoch(epoch, config.alpha_schedule)
-    fraction = step / config.steps
+    fraction = step / config.steps if config.steps is not None else epoch / config.epochs
     alpha = float(config.alpha_fractions[0][1])
     for first, value in config.alpha_fractions:
         if fraction >= first:
@@ -65,9 +74,10 @@ def steps_at_full_lr(config: TrainConfig, steps_per_epoch: int) -> tuple[int, in
     """``(steps at the full learning rate, steps in the run)``."""
     if config.steps is None:
         total = config.epochs * steps_per_epoch
-        if config.lr_gamma == 1.0:
+        if config.lr_gamma == 1.0 or (config.schedule == "run" and not config.lr_milestones):
             return total, total
-        return min(total, config.lr_step * steps_per_epoch), total
+        first = _epoch_milestones(config)[0] if config.schedule == "run" else config.lr_step
+        return min(total, first * steps_per_epoch), total
     total = config.steps
     if config.lr_gamma == 1.0 or not config.lr_milestones:
         full = total
@@ -81,11 +91,12 @@ def schedule_note(config: TrainConfig, steps_per_epoch: int) -> str | None:
     full, total = steps_at_full_lr(config, steps_per_epoch)
     if full >= FEW_STEPS_AT_FULL_LR or full >= total:
         return None
-    how = (
-        f"StepLR every {config.lr_step} epochs of {steps_per_epoch} steps"
-        if config.steps is None
-        else f"the first milestone at {config.lr_milestones[0]:g} of {total} steps"
-    )
+    if config.steps is not None:
+        how = f"the first milestone at {config.lr_milestones[0]:g} of {total} steps"
+    elif config.schedule == "run":
+        how = f"the first milestone at {config.lr_milestones[0]:g} of {config.epochs} epochs"
+    else:
+        how = f"StepLR every {config.lr_step} epochs of {steps_per_epoch} steps"
     return (
         f"only {full} of the run's {total} optimiser steps are at the full learning rate "
         f"({how}); a flat curve later means the learning rate is gone, not convergence. "
