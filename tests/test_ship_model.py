@@ -110,3 +110,49 @@ def test_a_test_split_the_model_trained_on_is_refused(ship_model, checkpoint, tm
     with pytest.raises(SystemExit, match=r"refusing: \d+ test shapes were trained on, e\.g\."):
         ship_model.main(_args(checkpoint, train, test, tmp_path / "weights"))
     assert not (tmp_path / "weights").exists()
+
+
+def test_the_card_leads_with_the_scan_protocol_and_pfnet_models_shows_it(
+    ship_model, checkpoint, tiny_dataset, tmp_path, capsys, monkeypatch
+):
+    def table(cd, f):
+        return {
+            "mean": {"cd_l2": cd, "f_score": f},
+            "categories": {"chair": {"cd_l2": cd, "f_score": f}},
+        }
+
+    scan = tmp_path / "scan-y.json"
+    scan.write_text(
+        json.dumps(
+            {
+                "data": "data/sh3d", "split": "test", "missing_ratio": 0.25, "up": "y",
+                "f_wins_over_mirror": 1,
+                "results": {
+                    "complete (scan protocol)": table(12.5, 0.04),
+                    "same model, shape frame (paper protocol)": table(9.0, 0.03),
+                    "mirror of the input (learns nothing)": table(290.0, 0.034),
+                },
+            }
+        )
+    )  # fmt: skip
+    args = _args(checkpoint, tiny_dataset, tiny_dataset, tmp_path / "weights")
+    assert ship_model.main([*args, "--scan-protocol", str(scan)]) == 0
+    _, card = read_metadata(tmp_path / "weights" / "tiny.safetensors")
+    assert list(card)[:3] == ["summary", "scan", "recipe"]
+    (first,) = card["scan"]
+    assert first["cd_l2"] == 12.5 and first["mirror"] == {"cd_l2": 290.0, "f_score": 0.034}
+    assert "y-up, through pfnet complete" in first["data"]
+    import argparse
+    from types import SimpleNamespace
+
+    import pfnet.shipped
+    from pfnet.commands import models
+
+    fake = SimpleNamespace(name="tiny", card=card, config={"frame": "scan"}, size_mb=1.0)
+    monkeypatch.setattr(pfnet.shipped, "shipped_models", lambda: [fake])
+    capsys.readouterr()
+    assert models.run(argparse.Namespace(json=False)) == 0
+    said = capsys.readouterr().out
+    assert "frame     scan: trained on partials in their own centroid" in said
+    assert said.index("scans") < said.index("paper")
+    assert "12.50" in said and "a mirror of the input: 290.00, 0.034" in said
