@@ -123,3 +123,18 @@ def test_walk_files_leaves_out_hidden_files_and_follows_no_folder_link(tmp_path)
     (tmp_path / "a" / "y.xyz").write_text("0 0 0\n")
     (tmp_path / "a" / "loop").symlink_to(tmp_path / "a")
     assert walk_files(tmp_path / "a") == [tmp_path / "a" / "y.xyz"]
+
+
+def test_predict_and_evaluate_with_latin1_data_and_out(tmp_path):
+    pytest.importorskip("onnxruntime")  # the shipped model runs on either runtime
+    from pfnet.data import prepare_dataset
+
+    data, pred = f"data-{LATIN1}", f"pred-{LATIN1}"
+    prepare_dataset(None, tmp_path / data, format="procedural", points=2048, seed=0, count=3,
+                    categories=["chair", "table"], workers=1, progress=False)  # fmt: skip
+    done = _pfnet("predict", "--data", data, "--out", pred, "--device", "cpu", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr.decode(errors="replace")
+    assert b"pred-caf\\xe9" in done.stdout and b"--data data-caf\\xe9" in done.stdout
+    done = _pfnet("evaluate", pred, "--data", data, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr.decode(errors="replace")
+    assert b"pred-caf\\xe9 vs data-caf\\xe9" in done.stdout

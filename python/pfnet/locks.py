@@ -129,12 +129,24 @@ def reading(folder: str | os.PathLike[str] | None, doing: str) -> Iterator[None]
 
 
 @contextlib.contextmanager
-def writing(folder: str | os.PathLike[str], doing: str) -> Iterator[None]:
+def writing(folder: str | os.PathLike[str], doing: str, *, hold: bool = True) -> Iterator[None]:
     """An exclusive :func:`folder_lock` on ``folder``, made first if it does not exist (and
     removed again if the block leaves it empty): the lock must exist before anything is
     checked or written, so that a second run is refused before it reads what the first is
-    writing."""
+    writing. With ``hold`` false (a training rank other than the first) nothing is done.
+
+    Raises:
+        ConfigError: ``folder`` exists and is not a folder.
+        DataError: Another process holds it (:func:`folder_lock`).
+    """
+    from pfnet.errors import ConfigError
+
     path = Path(folder)
+    if not hold:
+        yield
+        return
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{path} exists and is not a folder")
     made = not path.exists() and not path.is_symlink()
     path.mkdir(parents=True, exist_ok=True)
     try:

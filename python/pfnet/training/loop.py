@@ -17,7 +17,6 @@ time is spent in training and validation steps.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import sys
@@ -101,16 +100,10 @@ def train(
     init = [config.init_from] if config.init_from and Path(config.init_from).exists() else []
     inputs = [data_dir, *([val_data] if val_data else []), *init]
     refuse_overlap(out_dir, inputs, flag="run folder")
-    if Path(out_dir).exists() and not Path(out_dir).is_dir():
-        raise ConfigError(f"run folder {out_dir} exists and is not a folder")
     context = distributed.setup(device)
     finished = False
-    try:
-        with contextlib.ExitStack() as held:
-            # one run at a time in a run folder (a second train, or a --resume of a run still
-            # going, is refused naming the first), held from before the resume checks
-            if context.is_main:
-                held.enter_context(writing(out_dir, "training into"))
+    try:  # one run in a run folder at a time (a second, or a --resume of one going, is refused)
+        with writing(out_dir, "training into", hold=context.is_main):
             val_dir = None if val_data is None else Path(val_data)
             trainer = Trainer(
                 config, Path(data_dir), Path(out_dir), context, resume=resume, val_dir=val_dir
