@@ -53,6 +53,7 @@ LOG = "log.jsonl"
 CURVES = "curves.png"
 VAL_METRIC = "val_cd_l2"  # selects best.pt: Pred→GT + GT→Pred on the missing region, ×1000
 CURVES_EVERY_S = 60.0  # curves.png is redrawn at most this often (and at the end)
+Notes = Callable[[str], None] | None  # what the caller hears, see train()
 
 
 def train(
@@ -64,7 +65,7 @@ def train(
     resume: bool = False,
     progress: bool | None = None,
     val_data: str | Path | None = None,
-    notes: Callable[[str], None] | None = None,
+    notes: Notes = None,
 ) -> dict[str, Any]:
     """Train ``config.model`` on the dataset in ``data_dir``, writing the run to ``out_dir``.
 
@@ -84,14 +85,12 @@ def train(
         val_data: Take the ``val`` split from this data set instead (e.g. train on every
             catalogue model, validate on the 8 categories' split, which the wider set's
             train split leaves out).
-        notes: Called, before the first step, with each note about the run (a schedule that
-            leaves few steps at the full learning rate); ``pfnet train`` prints them. The
-            summary lists them either way.
+        notes: Called with each note on the run (a short schedule); ``pfnet train`` prints.
 
     Returns:
         A summary: ``epochs`` completed, ``interrupted``, ``best_epoch``, ``best_val_cd_l2``,
         ``last`` / ``best`` checkpoint paths, ``world_size``, the final log row ``final``
-        ``checkpoint_write_s`` (seconds the writer thread spent serialising) and ``notes``.
+        and ``checkpoint_write_s`` (seconds the writer thread spent serialising).
 
     Raises:
         ConfigError: Bad configuration, or a resume that changes the configuration.
@@ -348,22 +347,17 @@ class Trainer:
 
     # -- the loop ------------------------------------------------------------------------
 
-    def run(
-        self, progress: bool = False, notes: Callable[[str], None] | None = None
-    ) -> dict[str, Any]:
+    def run(self, progress: bool = False, notes: Notes = None) -> dict[str, Any]:
         """Train until ``config.epochs`` or a stop request; see :func:`train`."""
         ctx = self.context
         c = self.config
-        run_notes: list[str] = []
         if ctx.is_main:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             with atomic_path(self.out_dir / "config.json") as tmp:
                 tmp.write_text(json.dumps(c.to_dict(), indent=2) + "\n")
             note = schedule_note(c, self.steps_per_epoch)
-            if note and self.epoch == 0 and not self.batches_done:
-                run_notes.append(note)
-                if notes is not None:
-                    notes(note)
+            if note and notes is not None and self.epoch == 0 and not self.batches_done:
+                notes(note)
         interrupted = False
         with StopRequest().installed() as stop, CheckpointWriter() as writer:
             self._writer = writer
@@ -399,7 +393,6 @@ class Trainer:
             "world_size": ctx.world_size,
             "final": self.history[-1],
             "checkpoint_write_s": round(writer.seconds_writing, 3),
-            "notes": run_notes,
         }
 
     def _run_epoch(self, stop: StopRequest, progress: bool) -> bool:
