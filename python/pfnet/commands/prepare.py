@@ -16,8 +16,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "source",
         metavar="SOURCE",
+        nargs="+",
         help="a folder (ROOT/<category>/<mesh>, a ShapeNet-Part, PCN, ShapeNet-55/34 or KITTI "
-        "tree, *.sh3f catalogues), a .sh3f file, or the word 'procedural'",
+        "tree, *.sh3f catalogues, a FlightGear, TORCS or crrcsim data tree, the SweetHome3D "
+        "application's folder or jar), a .sh3f file, or the word 'procedural'; several mesh "
+        "and catalogue sources make one data set",
     )
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write")
     parser.add_argument(
@@ -29,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             "shapenet-part",
             "sweethome3d",
             "procedural",
+            "flightgear",
+            "torcs",
+            "crrcsim",
+            "sweethome3d-app",
             "pcn",
             "shapenet-55",
             "shapenet-34",
@@ -79,6 +86,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--strict", action="store_true", help="fail on any unreadable or degenerate file"
     )
     parser.add_argument(
+        "--distinct",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="store identical geometry once and keep near-copies in one split (default: on "
+        "for several sources, off for one)",
+    )
+    parser.add_argument(
         "--overwrite", action="store_true", help="replace an existing, non-empty --out folder"
     )
 
@@ -87,7 +101,11 @@ def run(args: argparse.Namespace) -> int:
     """Prepare the dataset and print a summary."""
     from pfnet.data.prepare import prepare_dataset
 
-    source = None if args.source == "procedural" else args.source
+    given = list(args.source)
+    if len(given) > 1:
+        source = given
+    else:
+        source = None if given[0] == "procedural" else given[0]
     out = Path(args.out)
     if not args.overwrite and out.is_dir() and any(out.iterdir()):
         raise ConfigError(
@@ -107,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
         count=args.count,
         strict=args.strict,
         overwrite=args.overwrite,
+        distinct=args.distinct,
     )
     print(report.summary())
     return 0

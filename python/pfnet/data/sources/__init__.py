@@ -29,7 +29,16 @@ __all__ = [
     "unique_names",
 ]
 
-FORMATS: tuple[str, ...] = ("meshes", "shapenet-part", "sweethome3d", "procedural")
+FORMATS: tuple[str, ...] = (
+    "meshes",
+    "shapenet-part",
+    "sweethome3d",
+    "procedural",
+    "flightgear",
+    "torcs",
+    "crrcsim",
+    "sweethome3d-app",
+)
 """The source formats ``pfnet prepare --format`` accepts (besides ``auto``)."""
 
 _UNSAFE = re.compile(r"[^a-z0-9._-]+")
@@ -45,7 +54,8 @@ class ShapeItem:
         name: Unique, filesystem-safe name in the dataset.
         category: Category label.
         path: Where the shape comes from, for reports (a file, or ``CATALOGUE.sh3f:/model.obj``).
-        kind: How to load it: ``"mesh-file"``, ``"cloud-file"``, ``"sh3f"`` or ``"procedural"``.
+        kind: How to load it: ``"mesh-file"``, ``"cloud-file"``, ``"sh3f"``, ``"ac3d"`` or
+            ``"procedural"``.
         split: ``"train"``/``"val"``/``"test"`` when the source defines it, else None.
         args: Loader arguments for ``kind``.
     """
@@ -171,6 +181,10 @@ def load_item(item: ShapeItem, seed: int) -> Geometry:
         from pfnet.data.sources.sweethome3d import load_model
 
         return load_model(*item.args)
+    if item.kind == "ac3d":
+        from pfnet.data.sources.ac3d_trees import load_ac3d_item
+
+        return load_ac3d_item(*item.args)
     if item.kind == "procedural":
         from pfnet.data.sources.procedural import build_shape
 
@@ -201,6 +215,9 @@ def detect_format(source: str | os.PathLike[str] | None) -> str:
         raise DataError(f"{path}: no such file or folder")
     if sweethome3d.looks_like(path):
         return "sweethome3d"
+    for name, module in _open_shape_sources().items():
+        if module.looks_like(path):
+            return name
     if shapenet_part.looks_like(path):
         return "shapenet-part"
     benchmark = detect_benchmark(path)
@@ -215,3 +232,16 @@ def detect_format(source: str | os.PathLike[str] | None) -> str:
         f"with {shapenet_part.CATEGORY_FILE}, or <category>/<mesh file> folders); "
         "give the format (meshes, shapenet-part or sweethome3d)"
     )
+
+
+def _open_shape_sources() -> dict:
+    """The sources of the open-shapes corpus, by format name (FlightGear, TORCS, crrcsim, the
+    SweetHome3D application's catalogue)."""
+    from pfnet.data.sources import crrcsim, flightgear, sweethome3d_app, torcs
+
+    return {
+        "flightgear": flightgear,
+        "torcs": torcs,
+        "crrcsim": crrcsim,
+        "sweethome3d-app": sweethome3d_app,
+    }

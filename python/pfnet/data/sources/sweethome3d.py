@@ -34,6 +34,7 @@ __all__ = [
     "DEFAULT_PATH",
     "MIN_LIGHT_SIZE_CM",
     "OTHER",
+    "catalogue_entries",
     "category_for",
     "load_model",
     "looks_like",
@@ -216,29 +217,7 @@ def scan(source: Path, strict: bool = False) -> Scan:
                 raise
             skipped.append((str(path), str(err).removeprefix(f"{path}: ")))
             continue
-        entries: dict[int, dict[str, str]] = {}
-        for key, value in properties.items():
-            match = re.fullmatch(r"(\w+)#(\d+)", key)
-            if match:
-                entries.setdefault(int(match.group(2)), {})[match.group(1)] = value
-        for number in sorted(entries):
-            entry = entries[number]
-            model = entry.get("model")
-            name = entry.get("name", f"model {number}")
-            if not model:
-                continue
-            size = max(_number(entry.get(k)) for k in ("width", "depth", "height"))
-            is_light = any(k.startswith("lightSource") for k in entry)
-            if "light source" in name.lower() or (is_light and size < MIN_LIGHT_SIZE_CM):
-                dropped["light_source"] += 1
-                continue
-            member = unquote(model.split("!/")[-1]).lstrip("/")
-            rotation = _rotation(entry.get("modelRotation"))
-            stem = entry.get("id", f"{path.stem}#{number}")
-            key = f"{path.name}:{stem}"
-            display = f"{path}:/{member}"
-            pending.append((key, stem, category_for(name), display, (str(path), member, rotation)))
-            credits[key] = (path.name, entry.get("creator", "").strip())
+        pending += catalogue_entries(path, properties, dropped, credits)
         licenses.append(
             {
                 "source": path.name,
@@ -253,6 +232,47 @@ def scan(source: Path, strict: bool = False) -> Scan:
         for key, _, category, display, args in pending
     ]
     return Scan(items=items, licenses=licenses, dropped=dropped, skipped=skipped, credits=credits)
+
+
+def catalogue_entries(
+    path: Path,
+    properties: dict[str, str],
+    dropped: dict[str, int],
+    credits: dict[str, tuple[str, str]],
+) -> list[tuple[str, str, str, str, tuple]]:
+    """The models of one catalogue's properties (a ``.sh3f``, or the application's jar).
+
+    Light sources are counted in ``dropped["light_source"]``; each model's creator is put in
+    ``credits`` under its key, with the catalogue's file name as the licence source.
+
+    Returns:
+        ``(key, id, category, display path, load_model arguments)`` per model.
+    """
+    entries: dict[int, dict[str, str]] = {}
+    found: list[tuple[str, str, str, str, tuple]] = []
+    for key, value in properties.items():
+        match = re.fullmatch(r"(\w+)#(\d+)", key)
+        if match:
+            entries.setdefault(int(match.group(2)), {})[match.group(1)] = value
+    for number in sorted(entries):
+        entry = entries[number]
+        model = entry.get("model")
+        name = entry.get("name", f"model {number}")
+        if not model:
+            continue
+        size = max(_number(entry.get(k)) for k in ("width", "depth", "height"))
+        is_light = any(k.startswith("lightSource") for k in entry)
+        if "light source" in name.lower() or (is_light and size < MIN_LIGHT_SIZE_CM):
+            dropped["light_source"] += 1
+            continue
+        member = unquote(model.split("!/")[-1]).lstrip("/")
+        rotation = _rotation(entry.get("modelRotation"))
+        stem = entry.get("id", f"{path.stem}#{number}")
+        key = f"{path.name}:{stem}"
+        display = f"{path}:/{member}"
+        found.append((key, stem, category_for(name), display, (str(path), member, rotation)))
+        credits[key] = (path.name, entry.get("creator", "").strip())
+    return found
 
 
 def _rotation(value: str | None) -> tuple[float, ...] | None:
