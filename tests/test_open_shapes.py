@@ -307,3 +307,20 @@ def test_real_trees_scan(name: str) -> None:
     assert {"flightgear": {"airplane", "ship", "car"}, "torcs": {"car"}, "crrcsim": {"airplane"}}[
         name
     ] <= categories
+
+
+def test_the_command_line_takes_several_sources(
+    tmp_path: Path, torcs_tree: Path, crrcsim_tree: Path, capsys: pytest.CaptureFixture
+) -> None:
+    from pfnet.cli import main
+
+    out = tmp_path / "two"
+    args = ["prepare", str(torcs_tree), str(crrcsim_tree), "--out", str(out), "--points", "64"]
+    assert main([*args, "--workers", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "from torcs, crrcsim" in printed and "from torcs: 2 (car 2)" in printed
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["distinct"]["kept_by_source"] == {
+        "crrcsim": {"airplane": 1, "helicopter": 1},
+        "torcs": {"car": 2},
+    }
