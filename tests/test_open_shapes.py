@@ -324,3 +324,11 @@ def test_the_command_line_takes_several_sources(
         "crrcsim": {"airplane": 1, "helicopter": 1},
         "torcs": {"car": 2},
     }
+
+
+def test_a_mesh_folder_may_hold_ac3d_files(tmp_path: Path) -> None:
+    _write(tmp_path / "meshes/airplane/a.ac", _airplane(8, 6))
+    _write(tmp_path / "meshes/airplane/b.ac", _airplane(5, 9))
+    _write(tmp_path / "meshes/car/c.acc", _ac(_box(4, 1.2, 1.8)))
+    report = prepare_dataset(tmp_path / "meshes", tmp_path / "out", points=64, workers=1)
+    assert _counts(report) == {"airplane": 2, "car": 1} and report.format == "meshes"

@@ -22,15 +22,24 @@ The Chamfer distance here is the symmetric one, ``pred→gt + gt→pred`` of
 from __future__ import annotations
 
 import hashlib
+from collections import Counter
 
 import numpy as np
+
+from pfnet.data.format import SPLITS
+from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
+from pfnet.data.sources import ShapeItem
+from pfnet.data.splits import assign_splits
 
 __all__ = [
     "NEAR_COPY_RATIO",
     "NEAR_POINTS",
+    "distinct_sample",
+    "distinct_summary",
     "geometry_digest",
     "near_copy_groups",
     "self_distance",
+    "split_distinct",
     "symmetric_chamfer",
 ]
 
@@ -138,3 +147,125 @@ def _pair_block(n: int, first: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
     ii, jj = np.meshgrid(i, np.arange(n), indexing="ij")
     keep = jj > ii
     return ii[keep], jj[keep]
+
+
+def distinct_sample(geometry, item: ShapeItem, points: np.ndarray, n_points: int, seed: int):
+    """The normalised points, "", the geometry's digest and its self-distance: the Chamfer
+    distance between the cloud's first NEAR_POINTS points and as many more drawn from an
+    independent stream, normalised alike."""
+    second_rng = shape_rng(seed, f"{item.key}#second-sample")
+    n_near = min(NEAR_POINTS, n_points)
+    if geometry.faces is None:
+        second = resample_points(geometry.vertices, n_near, second_rng, 0)
+    else:
+        second = sample_surface(geometry.vertices, geometry.faces, n_near, second_rng)
+    both = normalize(np.concatenate([points, second]), n_points)
+    cloud, second = both[: len(points)], both[len(points) :]
+    digest = geometry_digest(geometry.vertices, geometry.faces)
+    return cloud, "", digest, self_distance(cloud[:n_near], second)
+
+
+def split_distinct(
+    loaded: list[tuple[ShapeItem, np.ndarray, str, float]],
+    kept: dict[str, list[tuple[ShapeItem, np.ndarray]]],
+    has_splits: bool,
+    seed: int,
+    test_fraction: float,
+    val_fraction: float,
+    origins: dict[str, dict],
+) -> tuple[dict[str, list[tuple[ShapeItem, np.ndarray]]], dict]:
+    """Identical geometry once, near-copies in one split (:mod:`pfnet.data.distinct`).
+
+    Returns:
+        The kept shapes by split, and the record of what was merged and grouped.
+    """
+    if not loaded:  # not asked for (or nothing read): the shapes as they were split
+        return kept, {}
+    loaded = sorted(loaded, key=lambda entry: entry[0].key)
+    first_of: dict[str, ShapeItem] = {}
+    unique: list[tuple[ShapeItem, np.ndarray, float]] = []
+    identical: dict[str, int] = {}
+    merged_into: dict[str, list[str]] = {}
+    for item, cloud, digest, self_dist in loaded:
+        if digest in first_of:
+            identical[item.category] = identical.get(item.category, 0) + 1
+            merged_into.setdefault(first_of[digest].name, []).append(item.path)
+            continue
+        first_of[digest] = item
+        unique.append((item, cloud, self_dist))
+    clouds = np.stack([cloud[:NEAR_POINTS] for _, cloud, _ in unique])
+    groups, pairs = near_copy_groups(
+        clouds,
+        np.array([d for *_, d in unique], dtype=np.float64),
+    )
+    roots = sorted(set(groups.tolist()))
+    root_items = [unique[r][0] for r in roots]
+    if has_splits:
+        root_split = {r: unique[r][0].split or "train" for r in roots}
+    else:
+        drawn = assign_splits(root_items, seed, test_fraction, val_fraction)
+        root_split = dict(zip(roots, drawn, strict=True))
+    kept: dict[str, list[tuple[ShapeItem, np.ndarray]]] = {split: [] for split in SPLITS}
+    for index, (item, cloud, _) in enumerate(unique):
+        kept[root_split[int(groups[index])]].append((item, cloud))
+    sizes = Counter(groups.tolist())
+    grouped: dict[str, int] = {}
+    grouped_shapes: dict[str, int] = {}
+    for root, size in sizes.items():
+        if size > 1:
+            category = unique[root][0].category
+            grouped[category] = grouped.get(category, 0) + 1
+            grouped_shapes[category] = grouped_shapes.get(category, 0) + size
+    by_source: dict[str, dict[str, int]] = {}
+    for item, *_ in unique:
+        source = origins.get(item.key, {}).get("source", "")
+        counts = by_source.setdefault(source, {})
+        counts[item.category] = counts.get(item.category, 0) + 1
+    info = {
+        "loaded": len(loaded),
+        "distinct_meshes": len(unique),
+        "identical_merged": dict(sorted(identical.items())),
+        "near_copy_ratio": NEAR_COPY_RATIO,
+        "near_copy_points": NEAR_POINTS,
+        "near_copy_groups": dict(sorted(grouped.items())),
+        "near_copy_shapes": dict(sorted(grouped_shapes.items())),
+        "distinct_groups": dict(sorted(Counter(i.category for i in root_items).items())),
+        "kept_by_source": {s: dict(sorted(c.items())) for s, c in sorted(by_source.items())},
+        "merged_into": dict(sorted(merged_into.items())),
+        "near_copies": [
+            [unique[i][0].name, unique[j][0].name, round(r, 3)] for i, j, r in sorted(pairs)
+        ],
+    }
+    return kept, info
+
+
+def distinct_summary(info: dict) -> list[str]:
+    """The summary lines of the distinct step."""
+    if not info:
+        return []
+    lines = [
+        f"distinct: {info['distinct_meshes']} meshes of {info['loaded']} read; identical "
+        f"geometry merged: {sum(info['identical_merged'].values())}"
+    ]
+    if info["identical_merged"]:
+        lines.append(
+            "  merged by category: "
+            + ", ".join(f"{c} {n}" for c, n in info["identical_merged"].items())
+        )
+    if info["near_copy_groups"]:
+        lines.append(
+            f"  near-copies (Chamfer within {info['near_copy_ratio']}x two samples of one "
+            "surface), kept in one split: "
+            + ", ".join(
+                f"{c} {info['near_copy_shapes'][c]} in {n} groups"
+                for c, n in info["near_copy_groups"].items()
+            )
+        )
+    for source, counts in info["kept_by_source"].items():
+        total = sum(counts.values())
+        lines.append(
+            f"  from {source or 'the source'}: {total} ("
+            + ", ".join(f"{c} {n}" for c, n in counts.items())
+            + ")"
+        )
+    return lines

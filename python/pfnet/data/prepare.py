@@ -15,11 +15,12 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from pfnet.data.distinct import distinct_sample, distinct_summary, split_distinct
 from pfnet.data.format import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -30,7 +31,8 @@ from pfnet.data.format import (
     write_dataset,
 )
 from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
-from pfnet.data.sources import FORMATS, Scan, ShapeItem, detect_format, load_item
+from pfnet.data.sources import FORMATS, OPEN_SHAPE_FORMATS, Scan, ShapeItem, load_item
+from pfnet.data.sources.merge import merge_scans, several_manifest, several_sources
 from pfnet.data.splits import assign_splits
 from pfnet.errors import ConfigError, DataError
 from pfnet.io import refuse_overlap
@@ -62,8 +64,7 @@ class PrepareReport:
         dropped: Shapes left out on purpose, by reason (e.g. ``unmatched``, ``light_source``).
         seconds: Wall time.
         manifest: The manifest written.
-        distinct: With ``distinct``: identical meshes merged and near-copy groups, by category,
-            and the shapes kept by source (the manifest's ``distinct`` entry).
+        distinct: The manifest's ``distinct`` record (:func:`pfnet.data.distinct.split_distinct`).
     """
 
     out: Path
@@ -104,7 +105,7 @@ class PrepareReport:
             if count:
                 hint = " (categories 'all' keeps them)" if reason == "unmatched" else ""
                 lines.append(f"dropped {count} shapes: {reason.replace('_', ' ')}{hint}")
-        lines += _distinct_summary(self.distinct)
+        lines += distinct_summary(self.distinct)
         if self.skipped:
             lines.append(f"skipped {len(self.skipped)} files:")
             shown = self.skipped[:SKIPPED_SHOWN]
@@ -114,11 +115,7 @@ class PrepareReport:
         return "\n".join(lines)
 
 
-def process_item(
-    task: tuple[int, ShapeItem, int, int]
-    | tuple[int, ShapeItem, int, int, int]
-    | tuple[int, ShapeItem, int, int, int, bool],
-) -> tuple:
+def process_item(task: tuple) -> tuple:
     """Load, sample and normalise one shape (runs in a worker process).
 
     Args:
@@ -146,29 +143,11 @@ def process_item(
                 points = np.concatenate([points, more])
         if not distinct:
             return index, normalize(points, n_points), ""
-        return (index, *_with_distinct(geometry, item, points, n_points, seed))
+        return (index, *distinct_sample(geometry, item, points, n_points, seed))
     except DataError as err:
         return index, None, str(err).removeprefix(f"{item.path}: ")
     except Exception as err:  # a broken file can make any reader fail in its own way
         return index, None, f"cannot read: {type(err).__name__}: {err}"
-
-
-def _with_distinct(geometry, item: ShapeItem, points: np.ndarray, n_points: int, seed: int):
-    """The normalised points, "", the geometry's digest and its self-distance: the Chamfer
-    distance between the cloud's first NEAR_POINTS points and as many more drawn from an
-    independent stream, normalised alike."""
-    from pfnet.data.distinct import NEAR_POINTS, geometry_digest, self_distance
-
-    second_rng = shape_rng(seed, f"{item.key}#second-sample")
-    n_near = min(NEAR_POINTS, n_points)
-    if geometry.faces is None:
-        second = resample_points(geometry.vertices, n_near, second_rng, 0)
-    else:
-        second = sample_surface(geometry.vertices, geometry.faces, n_near, second_rng)
-    both = normalize(np.concatenate([points, second]), n_points)
-    cloud, second = both[: len(points)], both[len(points) :]
-    digest = geometry_digest(geometry.vertices, geometry.faces)
-    return cloud, "", digest, self_distance(cloud[:n_near], second)
 
 
 # More processes than this only add start-up time and memory (each holds a mesh loader).
@@ -242,7 +221,7 @@ def _check_arguments(
 
 
 def _scan(fmt: str, source, count: int | None, strict: bool) -> Scan:
-    from pfnet.data.sources import meshes, procedural, shapenet_part, sweethome3d
+    from pfnet.data.sources import meshes, procedural, scan_open_shapes, shapenet_part, sweethome3d
 
     if fmt == "procedural":
         if source is not None and str(source) != "procedural":
@@ -257,10 +236,8 @@ def _scan(fmt: str, source, count: int | None, strict: bool) -> Scan:
         raise DataError(f"{path}: no such file or folder")
     if fmt == "sweethome3d":
         return sweethome3d.scan(path, strict=strict)
-    if fmt in ("flightgear", "torcs", "crrcsim", "sweethome3d-app"):
-        from pfnet.data.sources import _open_shape_sources
-
-        return _open_shape_sources()[fmt].scan(path)
+    if fmt in OPEN_SHAPE_FORMATS:  # FlightGear, TORCS, crrcsim, SweetHome3D's jar
+        return scan_open_shapes(fmt, path)
     if not path.is_dir():
         raise DataError(f"{path}: the {fmt} format needs a folder")
     if fmt == "shapenet-part":
@@ -319,10 +296,8 @@ def prepare_dataset(
 
     Args:
         source: A folder or ``.sh3f`` file; ``None`` or ``"procedural"`` for procedural shapes;
-            or a list of mesh and catalogue sources (folders, ``.sh3f``/``.jar`` files), all
-            prepared into one data set (each detected on its own unless ``format`` is given;
-            keys and names must not clash; the manifest records each shape's source, path and
-            licence).
+            or a list of mesh and catalogue sources, prepared into one data set
+            (:func:`pfnet.data.sources.merge.merge_scans`).
         out: The dataset folder to write (atomically).
         format: ``"auto"`` or one of ``meshes``, ``shapenet-part``, ``sweethome3d``,
             ``procedural``, or a benchmark layout (``pcn``, ``shapenet-55``, ``shapenet-34``,
@@ -342,8 +317,7 @@ def prepare_dataset(
         strict: Fail on the first unreadable or degenerate file instead of skipping it.
         overwrite: Replace an existing, non-empty ``out``.
         progress: Show a progress bar on stderr (default: when stderr is a terminal).
-        distinct: Store identical geometry once and keep near-copies in one split
-            (:mod:`pfnet.data.distinct`); the default is on for several sources, off for one.
+        distinct: Identical geometry once, near-copies in one split (:mod:`pfnet.data.distinct`).
 
     Returns:
         The report: counts per split and category, skipped files, timing.
@@ -361,25 +335,8 @@ def prepare_dataset(
             f"format must be auto or one of {', '.join((*FORMATS, *BENCHMARK_FORMATS))}, "
             f"got {format!r}"
         )
-    sources: list[Path] | None = None
-    if isinstance(source, (list, tuple)):
-        if not source:
-            raise ConfigError("no source given")
-        if len(source) == 1:
-            source = source[0]
-        else:
-            sources = [Path(s) for s in source]
+    source, sources, formats, fmt = several_sources(source, format, BENCHMARK_FORMATS)
     procedural = sources is None and (source is None or str(source) == "procedural")
-    if sources is not None:
-        formats = [detect_format(s) if format == "auto" else format for s in sources]
-        unfit = sorted({f for f in formats if f in BENCHMARK_FORMATS or f == "procedural"})
-        if unfit:
-            raise ConfigError(
-                f"several sources take mesh and catalogue sources only, not {', '.join(unfit)}"
-            )
-        fmt = ", ".join(dict.fromkeys(formats))
-    else:
-        fmt = detect_format(source) if format == "auto" else format
     if fmt != "procedural" and procedural:
         raise ConfigError(f"the {fmt} format needs a source path")
     if fmt in BENCHMARK_FORMATS:
@@ -417,15 +374,11 @@ def prepare_dataset(
     if not procedural:
         refuse_overlap(out, sources or [source], flag="data set folder")
     out_path = check_output(out, overwrite)
-    origins: dict[str, dict] = {}
-    if sources is not None:
-        if count is not None:
-            raise ConfigError("count applies only to the procedural format")
-        scan, origins = _merge_scans(
-            [(f, s, _scan(f, s, None, strict)) for f, s in zip(formats, sources, strict=True)]
-        )
-    else:
-        scan = _scan(fmt, source, count, strict)
+    scan, origins = (
+        merge_scans([(f, s, _scan(f, s, count, strict)) for f, s in zip(formats, sources)])
+        if sources
+        else (_scan(fmt, source, count, strict), {})
+    )
     if strict and scan.skipped:
         path, reason = scan.skipped[0]
         raise DataError(f"{path}: {reason}")
@@ -437,10 +390,7 @@ def prepare_dataset(
         if scan.has_splits
         else assign_splits(items, seed, test_fraction, val_fraction)
     )
-    tasks = [
-        (index, item, points, seed, pool, True) if distinct else (index, item, points, seed, pool)
-        for index, item in enumerate(items)
-    ]
+    tasks = [(index, item, points, seed, pool, distinct) for index, item in enumerate(items)]
     results = _run(tasks, workers or usable_cpus(), progress, stop_on_failure=strict)
     skipped = list(scan.skipped)
     kept: dict[str, list[tuple[ShapeItem, np.ndarray]]] = {split: [] for split in SPLITS}
@@ -451,15 +401,11 @@ def prepare_dataset(
             if strict:
                 raise DataError(f"{item.path}: {reason}")
             skipped.append((item.path, reason))
-        elif distinct:
-            loaded.append((item, cloud, *extra))
-        else:
-            kept[splits[index]].append((item, cloud))
-    distinct_info: dict = {}
-    if distinct and loaded:
-        kept, distinct_info = _distinct(
-            loaded, scan.has_splits, seed, test_fraction, val_fraction, origins
-        )
+        else:  # with distinct, the digest and self-distance come too (extra)
+            (loaded if distinct else kept[splits[index]]).append((item, cloud, *extra))
+    kept, distinct_info = split_distinct(
+        loaded, kept, scan.has_splits, seed, test_fraction, val_fraction, origins
+    )
     if not any(kept.values()):
         raise DataError(f"{source}: every shape failed ({skipped[0][0]}: {skipped[0][1]})")
     cloud_sets = {split: _cloud_set(kept[split], points, pool) for split in SPLITS}
@@ -476,25 +422,7 @@ def prepare_dataset(
     manifest["licenses"] = licenses
     if credits:
         manifest["credits"] = credits
-    if sources is not None:
-        manifest["source"] = {
-            "format": "several",
-            "sources": [
-                {"format": f, "path": str(s)} for f, s in zip(formats, sources, strict=True)
-            ],
-        }
-        if all(f in _Y_UP for f in formats):
-            manifest["up_axis"] = "y"
-    elif fmt in _Y_UP:
-        manifest["up_axis"] = "y"
-    if distinct_info:
-        manifest["distinct"] = distinct_info
-    if origins:
-        manifest["shapes"] = {
-            item.name: origins[item.key]
-            for split in SPLITS
-            for item, _ in sorted(kept[split], key=lambda s: s[0].name)
-        }
+    several_manifest(manifest, formats or [fmt], sources, distinct_info, origins, kept)
     write_dataset(out_path, cloud_sets, manifest, overwrite=overwrite)
     return PrepareReport(
         out=out_path,
@@ -569,156 +497,3 @@ def _manifest(
         "dropped": {k: v for k, v in scan.dropped.items() if v},
         **skipped_entries(skipped),
     }
-
-
-# Sources whose shapes are y-up as they come (the AC3D trees are y-up in their files).
-_Y_UP = ("sweethome3d", "procedural", "sweethome3d-app", "flightgear", "torcs", "crrcsim")
-
-
-def _merge_scans(scans: list[tuple[str, Path, Scan]]) -> tuple[Scan, dict[str, dict]]:
-    """One scan of several sources, and each shape's origin (source format, path, licence).
-
-    Names are made unique across the sources (a clash gets ``-2``...); every shape is
-    credited (sources without per-model credits under their own licence record).
-
-    Raises:
-        DataError: Two sources hold a shape of the same key (the same source twice?).
-    """
-    from pfnet.data.sources import unique_names
-
-    items: list[ShapeItem] = []
-    licenses: list[dict] = []
-    dropped: dict[str, int] = {}
-    skipped: list[tuple[str, str]] = []
-    credits: dict[str, tuple[str, str]] = {}
-    origins: dict[str, dict] = {}
-    for fmt, path, scan in scans:
-        records = list(scan.licenses) or [
-            {"source": str(path), "catalogue": str(path), "license": "as given by the user"}
-        ]
-        licenses += [r for r in records if r not in licenses]
-        by_source = {r["source"]: r for r in records}
-        for item in scan.items:
-            if item.key in origins:
-                raise DataError(f"{path}: shape {item.key} is also in another source")
-            record_source, creator = scan.credits.get(item.key, (records[0]["source"], ""))
-            credits[item.key] = (record_source, creator)
-            record = by_source.get(record_source, records[0])
-            origins[item.key] = {
-                "source": fmt,
-                "path": item.path,
-                "license": record.get("license", ""),
-            }
-            items.append(item)
-        for reason, n in scan.dropped.items():
-            dropped[f"{fmt}: {reason}"] = dropped.get(f"{fmt}: {reason}", 0) + n
-        skipped += scan.skipped
-    names = unique_names({item.key: item.name for item in items})
-    items = [replace(item, name=names[item.key]) for item in items]
-    merged = Scan(items=items, licenses=licenses, dropped=dropped, skipped=skipped, credits=credits)
-    return merged, origins
-
-
-def _distinct(
-    loaded: list[tuple[ShapeItem, np.ndarray, str, float]],
-    has_splits: bool,
-    seed: int,
-    test_fraction: float,
-    val_fraction: float,
-    origins: dict[str, dict],
-) -> tuple[dict[str, list[tuple[ShapeItem, np.ndarray]]], dict]:
-    """Identical geometry once, near-copies in one split (:mod:`pfnet.data.distinct`).
-
-    Returns:
-        The kept shapes by split, and the record of what was merged and grouped.
-    """
-    from pfnet.data.distinct import NEAR_COPY_RATIO, NEAR_POINTS, near_copy_groups
-
-    loaded = sorted(loaded, key=lambda entry: entry[0].key)
-    first_of: dict[str, ShapeItem] = {}
-    unique: list[tuple[ShapeItem, np.ndarray, float]] = []
-    identical: dict[str, int] = {}
-    merged_into: dict[str, list[str]] = {}
-    for item, cloud, digest, self_dist in loaded:
-        if digest in first_of:
-            identical[item.category] = identical.get(item.category, 0) + 1
-            merged_into.setdefault(first_of[digest].name, []).append(item.path)
-            continue
-        first_of[digest] = item
-        unique.append((item, cloud, self_dist))
-    clouds = np.stack([cloud[:NEAR_POINTS] for _, cloud, _ in unique])
-    groups, pairs = near_copy_groups(
-        clouds,
-        np.array([d for *_, d in unique], dtype=np.float64),
-    )
-    roots = sorted(set(groups.tolist()))
-    root_items = [unique[r][0] for r in roots]
-    if has_splits:
-        root_split = {r: unique[r][0].split or "train" for r in roots}
-    else:
-        drawn = assign_splits(root_items, seed, test_fraction, val_fraction)
-        root_split = dict(zip(roots, drawn, strict=True))
-    kept: dict[str, list[tuple[ShapeItem, np.ndarray]]] = {split: [] for split in SPLITS}
-    for index, (item, cloud, _) in enumerate(unique):
-        kept[root_split[int(groups[index])]].append((item, cloud))
-    sizes = Counter(groups.tolist())
-    grouped: dict[str, int] = {}
-    grouped_shapes: dict[str, int] = {}
-    for root, size in sizes.items():
-        if size > 1:
-            category = unique[root][0].category
-            grouped[category] = grouped.get(category, 0) + 1
-            grouped_shapes[category] = grouped_shapes.get(category, 0) + size
-    by_source: dict[str, dict[str, int]] = {}
-    for item, *_ in unique:
-        source = origins.get(item.key, {}).get("source", "")
-        counts = by_source.setdefault(source, {})
-        counts[item.category] = counts.get(item.category, 0) + 1
-    info = {
-        "loaded": len(loaded),
-        "distinct_meshes": len(unique),
-        "identical_merged": dict(sorted(identical.items())),
-        "near_copy_ratio": NEAR_COPY_RATIO,
-        "near_copy_points": NEAR_POINTS,
-        "near_copy_groups": dict(sorted(grouped.items())),
-        "near_copy_shapes": dict(sorted(grouped_shapes.items())),
-        "distinct_groups": dict(sorted(Counter(i.category for i in root_items).items())),
-        "kept_by_source": {s: dict(sorted(c.items())) for s, c in sorted(by_source.items())},
-        "merged_into": dict(sorted(merged_into.items())),
-        "near_copies": [
-            [unique[i][0].name, unique[j][0].name, round(r, 3)] for i, j, r in sorted(pairs)
-        ],
-    }
-    return kept, info
-
-
-def _distinct_summary(info: dict) -> list[str]:
-    """The summary lines of the distinct step."""
-    if not info:
-        return []
-    lines = [
-        f"distinct: {info['distinct_meshes']} meshes of {info['loaded']} read; identical "
-        f"geometry merged: {sum(info['identical_merged'].values())}"
-    ]
-    if info["identical_merged"]:
-        lines.append(
-            "  merged by category: "
-            + ", ".join(f"{c} {n}" for c, n in info["identical_merged"].items())
-        )
-    if info["near_copy_groups"]:
-        lines.append(
-            f"  near-copies (Chamfer within {info['near_copy_ratio']}x two samples of one "
-            "surface), kept in one split: "
-            + ", ".join(
-                f"{c} {info['near_copy_shapes'][c]} in {n} groups"
-                for c, n in info["near_copy_groups"].items()
-            )
-        )
-    for source, counts in info["kept_by_source"].items():
-        total = sum(counts.values())
-        lines.append(
-            f"  from {source or 'the source'}: {total} ("
-            + ", ".join(f"{c} {n}" for c, n in counts.items())
-            + ")"
-        )
-    return lines

@@ -19,6 +19,7 @@ from pfnet.errors import ConfigError, DataError
 
 __all__ = [
     "FORMATS",
+    "OPEN_SHAPE_FORMATS",
     "Geometry",
     "Scan",
     "ShapeItem",
@@ -26,6 +27,7 @@ __all__ = [
     "load_item",
     "pick_source",
     "safe_name",
+    "scan_open_shapes",
     "unique_names",
 ]
 
@@ -232,6 +234,15 @@ def detect_format(source: str | os.PathLike[str] | None) -> str:
         f"with {shapenet_part.CATEGORY_FILE}, or <category>/<mesh file> folders); "
         "give the format (meshes, shapenet-part or sweethome3d)"
     )
+
+
+OPEN_SHAPE_FORMATS = ("flightgear", "torcs", "crrcsim", "sweethome3d-app")
+"""The formats of the open-shapes sources (:func:`scan_open_shapes`)."""
+
+
+def scan_open_shapes(fmt: str, path: Path) -> Scan:
+    """Scan a FlightGear, TORCS or crrcsim tree or the SweetHome3D application."""
+    return _open_shape_sources()[fmt].scan(path)
 
 
 def _open_shape_sources() -> dict:

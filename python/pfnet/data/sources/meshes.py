@@ -1,6 +1,7 @@
 """Mesh folders: ``ROOT/<category>/<any name>.<suffix>``, read with trimesh.
 
-Meshes (``.obj .off .ply .stl .glb .gltf``) are sampled on their surface; point clouds
+Meshes (``.obj .off .ply .stl .glb .gltf``, and AC3D ``.ac .acc`` read by
+:mod:`pfnet.formats.ac3d`) are sampled on their surface; point clouds
 (``.xyz .pts .npy .pcd``, and ``.ply`` files without faces) are resampled to the point count.
 Files may sit in sub-folders of a category folder; other suffixes (``.mtl``, textures,
 notes) are ignored. Hidden files and folders (starting with ``.``) are ignored.
@@ -17,7 +18,7 @@ from pfnet.paths import shown, walk_files
 
 __all__ = ["CLOUD_SUFFIXES", "MESH_SUFFIXES", "load_mesh_file", "looks_like", "scan"]
 
-MESH_SUFFIXES: tuple[str, ...] = (".obj", ".off", ".ply", ".stl", ".glb", ".gltf")
+MESH_SUFFIXES: tuple[str, ...] = (".obj", ".off", ".ply", ".stl", ".glb", ".gltf", ".ac", ".acc")
 CLOUD_SUFFIXES: tuple[str, ...] = (".xyz", ".pts", ".npy", ".pcd")
 
 
@@ -96,8 +97,12 @@ def load_mesh_file(path: str) -> Geometry:
     import numpy as np
     import trimesh
 
-    check_mesh_file(Path(path))
     suffix = Path(path).suffix.lower()
+    if suffix in (".ac", ".acc"):  # trimesh does not read AC3D
+        from pfnet.data.sources.ac3d_trees import load_ac3d_item
+
+        return load_ac3d_item(path, None)
+    check_mesh_file(Path(path))
     options = {"skip_materials": True} if suffix == ".obj" else {}
     if shown(path) != str(path):
         # a name whose bytes are not UTF-8: trimesh names the geometry after the file and
