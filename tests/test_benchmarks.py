@@ -191,6 +191,7 @@ def test_fidelity_and_mmd_equal_every_pair():
 # ---------------------------------------------------------------- end to end
 
 
+@pytest.mark.slow  # end to end, or a measurement: runs in CI, not the default run
 @needs_runtime
 def test_pcn_prepare_predict_evaluate(pcn_tree, tmp_path, monkeypatch):
     data, pred = tmp_path / "data", tmp_path / "pred"
@@ -235,6 +236,7 @@ def test_pcn_prepare_predict_evaluate(pcn_tree, tmp_path, monkeypatch):
         np.testing.assert_array_equal(panels[2][1][0][0], test.points[i])
 
 
+@pytest.mark.slow  # end to end, or a measurement: runs in CI, not the default run
 @needs_runtime
 def test_shapenet55_prepare_predict_evaluate(shapenet_tree, tmp_path, capsys, monkeypatch):
     data, pred = tmp_path / "data", tmp_path / "pred"

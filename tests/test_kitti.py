@@ -356,6 +356,7 @@ def boxy_cars(rng: np.random.Generator, count: int, n: int) -> np.ndarray:
     return np.stack(clouds).astype(np.float32)
 
 
+@pytest.mark.slow  # end to end, or a measurement: runs in CI, not the default run
 def test_mmd_search_equals_every_pair_bit_for_bit():
     from pfnet.metrics import minimal_matching_distance
 

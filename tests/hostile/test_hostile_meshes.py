@@ -99,6 +99,7 @@ def test_gltf_buffers_count_towards_the_bound(tmp_path: Path) -> None:
         check_mesh_file(glb)
 
 
+@pytest.mark.slow  # end to end, or a measurement: runs in CI, not the default run
 @pytest.mark.real_data
 def test_the_largest_real_models_pass_the_bounds_and_prepare(tmp_path: Path) -> None:
     if not SWEETHOME3D_PATH.is_dir():

@@ -293,6 +293,7 @@ def test_forged_nesting_in_json_toml_and_config_values_is_one_line(
     assert len(str(caught.value)) < 400
 
 
+@pytest.mark.slow  # end to end, or a measurement: runs in CI, not the default run
 def test_forged_string_widths_and_category_names_in_a_split(
     tmp_path: Path, tiny_dataset: Path, checkpoint: Path, capsys
 ) -> None:

@@ -53,6 +53,7 @@ def test_an_ascii_ply_claiming_more_vertices_than_it_has_is_truncated(tmp_path: 
     assert peak < 50e6  # nothing of the claimed 19 million rows was allocated
 
 
+@pytest.mark.slow  # end to end, or a measurement: runs in CI, not the default run
 @pytest.mark.parametrize("kind", ["xyz", "ply"])
 def test_text_readers_use_memory_in_proportion_to_the_points(tmp_path: Path, kind: str) -> None:
     n = 300_000
