@@ -256,7 +256,7 @@ def _select(scan: Scan, fmt: str, categories: Sequence[str] | str | None) -> lis
         raise ConfigError("categories is empty")
     if categories is None or list(categories) == ["all"]:
         keep = set(available)
-        if categories is None and fmt == "sweethome3d":
+        if categories is None and fmt in ("sweethome3d", "sweethome3d-app"):
             keep.discard(OTHER)
             scan.dropped["unmatched"] = sum(item.category == OTHER for item in scan.items)
     else:
