@@ -104,6 +104,17 @@ def main(argv=None) -> None:
         "--no-turn", action="store_true", help="no turn about the up axis (scale and offset only)"
     )
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument(
+        "--keep",
+        type=Path,
+        default=None,
+        help="save each sample's partial, completion (mapped back) and removed points here",
+    )
+    parser.add_argument(
+        "--no-mirror",
+        action="store_true",
+        help="leave out the mirror baseline (slow on big splits)",
+    )
     args = parser.parse_args(argv)
 
     clouds = load_split(args.data, args.split)
@@ -119,6 +130,7 @@ def main(argv=None) -> None:
         completed, said, elapsed = complete_through_cli(
             scans, Path(tmp), args.up, args.checkpoint, args.runtime
         )
+
     results = {
         "complete (scan protocol)": [
             pose.invert(c) for pose, c in zip(poses, completed, strict=True)
@@ -126,14 +138,23 @@ def main(argv=None) -> None:
         "same model, shape frame (paper protocol)": shape_frame_predictions(
             partial, args.checkpoint, args.runtime
         ),
-        "mirror of the input (learns nothing)": [
+    }
+    if not args.no_mirror:
+        results["mirror of the input (learns nothing)"] = [
             pose.invert(c)
             for pose, c in zip(
                 poses, mirror_predictions(scans, args.up, removed.shape[1]), strict=True
             )
-        ],
-    }
+        ]
     tables = {name: score(p, removed, categories) for name, p in results.items()}
+    if args.keep is not None:  # in the data set's frame, for `pfnet render --sample`
+        args.keep.mkdir(parents=True, exist_ok=True)
+        mapped_back = results["complete (scan protocol)"]
+        for i, (name, cat) in enumerate(zip(clouds.name, categories, strict=True)):
+            stem = args.keep / f"{i:03d}-{cat}-{name}"
+            np.save(f"{stem}-partial.npy", partial[i].astype(np.float32))
+            np.save(f"{stem}-completion.npy", np.asarray(mapped_back[i], np.float32))
+            np.save(f"{stem}-removed.npy", removed[i].astype(np.float32))
 
     print(f"{len(points)} {args.split} partials of {args.data}, {args.up}-up; {said}")
     print(f"pfnet complete: {elapsed:.1f} s for all, in a new process")
@@ -148,9 +169,11 @@ def main(argv=None) -> None:
             values = table["mean"] if row == "mean" else table["categories"][row]
             cells.append(f"{values['cd_l2']:8.2f} CD-L2  F {values['f_score']:.4f}")
         print(row.ljust(10) + "".join(f" | {c:>28}" for c in cells))
-    model, mirror = tables[names[0]]["categories"], tables[names[2]]["categories"]
-    wins = sum(model[c]["f_score"] > mirror[c]["f_score"] for c in model)
-    print(f"F-score above the mirror's in {wins} of {len(model)} categories")
+    wins = None
+    if len(names) > 2:
+        model, mirror = tables[names[0]]["categories"], tables[names[2]]["categories"]
+        wins = sum(model[c]["f_score"] > mirror[c]["f_score"] for c in model)
+        print(f"F-score above the mirror's in {wins} of {len(model)} categories")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         document = {

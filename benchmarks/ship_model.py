@@ -65,13 +65,20 @@ def _scan_card(path: Path) -> dict:
 
 def _card_rest(args, mean, evaluation, test, manifest) -> dict:
     """Everything of the card after its summary and scan figures."""
+    from pfnet.checkpoint import load_checkpoint
+
+    frame = getattr(load_checkpoint(args.checkpoint)[1], "frame", "shape")
+    given = (
+        "the complete shape's frame"
+        if frame == "shape"
+        else f"each partial in its own ({frame}) frame, unturned"
+    )
     rest = {
         "recipe": args.recipe,
         "train_data": _data_summary(args.train_data),
         "test": {
             "data": f"{args.test_data.name} test split ({len(test)} shapes, never trained "
-            "on), 25 % missing, the paper's protocol (the complete shape's frame), mean over "
-            "categories",
+            f"on), 25 % missing, the paper's crops, {given}, mean over categories",
             "pred_to_gt": mean["pred_to_gt"],
             "gt_to_pred": mean["gt_to_pred"],
             "cd_l2": mean["pred_to_gt"] + mean["gt_to_pred"],

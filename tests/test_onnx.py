@@ -27,10 +27,10 @@ from pfnet.io import read_point_cloud, write_ply  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.onnx_export import TOLERANCE, file_sha256  # noqa: E402
 from pfnet.runtimes import OnnxGenerator, has_module, load_generator  # noqa: E402
-from pfnet.shipped import WEIGHTS_DIR, read_metadata  # noqa: E402
+from pfnet.shipped import DEFAULT_MODEL, WEIGHTS_DIR, read_metadata  # noqa: E402
 from pfnet.training.config import TrainConfig, preset_config  # noqa: E402
 
-SHIPPED_ONNX = WEIGHTS_DIR / "sh3d-small.onnx"
+SHIPPED_ONNX = WEIGHTS_DIR / f"{DEFAULT_MODEL}.onnx"
 
 
 def _scan(n: int, seed: int) -> np.ndarray:
@@ -91,11 +91,12 @@ def test_shipped_onnx_is_the_shipped_model(tiny_dataset):
     onnx_run = load_generator(None, runtime="onnx", device="cpu")
     torch_run = load_generator(None, runtime="torch", device="cpu")
     assert onnx_run.model.path == SHIPPED_ONNX  # load_generator checked source_sha256
-    config, _ = read_metadata(WEIGHTS_DIR / "sh3d-small.safetensors")
+    config, _ = read_metadata(WEIGHTS_DIR / f"{DEFAULT_MODEL}.safetensors")
     assert onnx_run.config == torch_run.config == TrainConfig.from_dict(config).model_config()
     # float16-exact weights stored as float16: about the size of the safetensors file
     assert (
-        SHIPPED_ONNX.stat().st_size < 1.1 * (WEIGHTS_DIR / "sh3d-small.safetensors").stat().st_size
+        SHIPPED_ONNX.stat().st_size
+        < 1.1 * (WEIGHTS_DIR / f"{DEFAULT_MODEL}.safetensors").stat().st_size
     )
     n = torch_run.model.n_points - torch_run.model.n_missing
     clouds = np.asarray(load_split(tiny_dataset, "test").points)  # real-ish shapes of 512

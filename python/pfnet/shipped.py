@@ -27,7 +27,8 @@ VERSION = "1"
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 SUFFIX = ".safetensors"
 # The model `complete` and `predict` use when no --checkpoint is given.
-DEFAULT_MODEL = "sh3d-small"
+# The best on the scan protocol (docs/scan-protocol.md): what `pfnet complete` gets.
+DEFAULT_MODEL = "sh3d-scan"
 
 # The help of every command's --checkpoint: what resolve_checkpoint accepts.
 CHECKPOINT_HELP = (
