@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from pfnet.data.sources import FORMATS
 from pfnet.errors import ConfigError
 
 HELP = "Build a completion dataset (sampled, normalised point clouds) from a source."
@@ -28,14 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="auto",
         choices=(
             "auto",
-            "meshes",
-            "shapenet-part",
-            "sweethome3d",
-            "procedural",
-            "flightgear",
-            "torcs",
-            "crrcsim",
-            "sweethome3d-app",
+            *FORMATS,
             "pcn",
             "shapenet-55",
             "shapenet-34",
