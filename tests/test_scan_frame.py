@@ -115,6 +115,17 @@ def test_mirror_plane_and_completion_fill_a_missing_side():
         estimate_mirror_plane(np.zeros((1, 3)))
 
 
+def test_a_bare_folder_named_like_a_runtime_is_not_that_runtime(tmp_path, monkeypatch):
+    """An output folder `torch/` in the working directory made the light install take it for
+    PyTorch (and fail on torch.cuda)."""
+    from pfnet.runtimes import has_module
+
+    (tmp_path / "pfnet_runtime_stand_in").mkdir()
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert not has_module("pfnet_runtime_stand_in")
+    assert has_module("numpy")
+
+
 torch = pytest.importorskip("torch")
 
 

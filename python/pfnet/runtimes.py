@@ -42,8 +42,11 @@ ONNX_SUFFIX = ".onnx"
 
 
 def has_module(name: str) -> bool:
-    """Whether ``name`` can be imported (without importing it)."""
-    return importlib.util.find_spec(name) is not None
+    """Whether ``name`` is an installed module (without importing it). A bare folder of that
+    name in the working directory (a namespace package, e.g. an output folder ``torch/``) is
+    not: it would be imported instead of the real one and have none of its attributes."""
+    spec = importlib.util.find_spec(name)
+    return spec is not None and spec.origin is not None
 
 
 class OnnxGenerator:
