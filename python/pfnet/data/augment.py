@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from pfnet.data.format import read_manifest
+from pfnet.data.scan_frame import up_rotation
 from pfnet.errors import ConfigError
 
 __all__ = ["AXES", "Augmentation", "up_axis_index"]
@@ -70,13 +71,7 @@ class Augmentation:
         """``points`` ``(N, 3)`` augmented, float32 (a new array)."""
         out = np.asarray(points, dtype=np.float64)
         if self.up_axis is not None:
-            angle = rng.uniform(0.0, 2.0 * np.pi)
-            a, b = (axis for axis in range(3) if axis != self.up_axis)
-            cos, sin = np.cos(angle), np.sin(angle)
-            rotated = out.copy()
-            rotated[:, a] = cos * out[:, a] - sin * out[:, b]
-            rotated[:, b] = sin * out[:, a] + cos * out[:, b]
-            out = rotated
+            out = out @ up_rotation(rng.uniform(0.0, 2.0 * np.pi), self.up_axis).T
         if self.scale > 0:
             out = out * rng.uniform(1.0 - self.scale, 1.0 + self.scale, size=3)
         if self.jitter > 0:

@@ -272,25 +272,26 @@ def _is_int(line: str) -> bool:
         return False
 
 
+def _triangle_steps(runs: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """For runs of ``(offset, count)`` references (a polygon or a strip each), every triangle's
+    run offset and its index ``0 .. count - 3`` within the run."""
+    offsets = np.array([r[0] for r in runs], dtype=np.int64)
+    n_tri = np.array([r[1] for r in runs], dtype=np.int64) - 2
+    step = np.arange(n_tri.sum()) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)
+    return np.repeat(offsets, n_tri), step
+
+
 def _fan(refs: np.ndarray, polygons: list[tuple[int, int]]) -> np.ndarray:
     if not polygons:
         return np.zeros((0, 3), dtype=np.int64)
-    offsets = np.array([p[0] for p in polygons], dtype=np.int64)
-    counts = np.array([p[1] for p in polygons], dtype=np.int64)
-    n_tri = counts - 2
-    first = np.repeat(offsets, n_tri)
-    step = np.arange(n_tri.sum()) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)
+    first, step = _triangle_steps(polygons)
     return np.stack([refs[first], refs[first + step + 1], refs[first + step + 2]], axis=1)
 
 
 def _strip(refs: np.ndarray, strips: list[tuple[int, int]]) -> np.ndarray:
     if not strips:
         return np.zeros((0, 3), dtype=np.int64)
-    offsets = np.array([s[0] for s in strips], dtype=np.int64)
-    counts = np.array([s[1] for s in strips], dtype=np.int64)
-    n_tri = counts - 2
-    start = np.repeat(offsets, n_tri)
-    step = np.arange(n_tri.sum()) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)
+    start, step = _triangle_steps(strips)
     a, b, c = refs[start + step], refs[start + step + 1], refs[start + step + 2]
     odd = (step % 2).astype(bool)  # every other triangle of a strip is wound the other way
     faces = np.stack([a, np.where(odd, c, b), np.where(odd, b, c)], axis=1)

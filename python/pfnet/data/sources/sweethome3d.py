@@ -174,14 +174,25 @@ def _catalogues(source: Path) -> list[Path]:
     return files
 
 
-def _read_catalogue(path: Path) -> dict[str, str]:
+def read_catalogue(
+    path: Path,
+    member: str = CATALOGUE_FILE,
+    missing: str = f"not a furniture catalogue (no {CATALOGUE_FILE})",
+    unreadable: str = "cannot read the catalogue",
+) -> dict[str, str]:
+    """The properties ``member`` of the ZIP ``path`` (a ``.sh3f`` catalogue, or the
+    application's jar), bounded; errors name ``path`` with ``missing`` or ``unreadable``.
+
+    Raises:
+        DataError: No such member, or an unreadable or oversized archive.
+    """
     try:
         with zipfile.ZipFile(path) as archive:
-            raw = read_member(archive, CATALOGUE_FILE, MAX_CATALOGUE_BYTES)
+            raw = read_member(archive, member, MAX_CATALOGUE_BYTES)
     except KeyError as err:
-        raise DataError(f"{path}: not a furniture catalogue (no {CATALOGUE_FILE})") from err
+        raise DataError(f"{path}: {missing}") from err
     except (OSError, zipfile.BadZipFile) as err:
-        raise DataError(f"{path}: cannot read the catalogue: {err}") from err
+        raise DataError(f"{path}: {unreadable}: {err}") from err
     return parse_properties(raw.decode("iso-8859-1"))
 
 
@@ -211,7 +222,7 @@ def scan(source: Path, strict: bool = False) -> Scan:
     pending: list[tuple[str, str, str, str, tuple]] = []  # key, stem, category, path, args
     for path in _catalogues(source):
         try:
-            properties = _read_catalogue(path)
+            properties = read_catalogue(path)
         except DataError as err:
             if strict:
                 raise

@@ -17,13 +17,7 @@ import zipfile
 from pathlib import Path
 
 from pfnet.data.sources import Scan, ShapeItem, unique_names
-from pfnet.data.sources.sweethome3d import (
-    MAX_CATALOGUE_BYTES,
-    catalogue_entries,
-    parse_properties,
-    read_member,
-)
-from pfnet.errors import DataError
+from pfnet.data.sources.sweethome3d import catalogue_entries, read_catalogue
 
 __all__ = ["CATALOGUE_MEMBER", "DEFAULT_PATH", "looks_like", "scan"]
 
@@ -64,14 +58,12 @@ def scan(source: Path) -> Scan:
         DataError: No jar, or no default catalogue in it.
     """
     jar = _jar(source)
-    try:
-        with zipfile.ZipFile(jar) as archive:
-            raw = read_member(archive, CATALOGUE_MEMBER, MAX_CATALOGUE_BYTES)
-    except KeyError as err:
-        raise DataError(f"{jar}: no {CATALOGUE_MEMBER} (not the SweetHome3D application)") from err
-    except (OSError, zipfile.BadZipFile) as err:
-        raise DataError(f"{jar}: cannot read the application's catalogue: {err}") from err
-    properties = parse_properties(raw.decode("iso-8859-1"))
+    properties = read_catalogue(
+        jar,
+        CATALOGUE_MEMBER,
+        missing=f"no {CATALOGUE_MEMBER} (not the SweetHome3D application)",
+        unreadable="cannot read the application's catalogue",
+    )
     dropped = {"light_source": 0}
     credits: dict[str, tuple[str, str]] = {}
     pending = catalogue_entries(jar, properties, dropped, credits)
