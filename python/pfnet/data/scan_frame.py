@@ -99,6 +99,7 @@ def scan_pose(index: int, *, up: str = "y", seed: int = 0, turn: bool = True) ->
     z-up.
     """
     rng = _pose_rng(index, seed)
+    # without the turn the draw is still made, so that the scale and offset stay the same
     angle = rng.uniform(0.0, 2.0 * np.pi) if turn else rng.uniform(0.0, 0.0)
     scale = float(10.0 ** rng.uniform(-1.0, 1.0))
     shift = rng.uniform(-10.0, 10.0, size=3) * scale
