@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from pfnet.errors import ConfigError
-from pfnet.models import MODEL_NAMES, MODEL_TITLES, REGISTRY, ModelConfig
+from pfnet.models import MODEL_NAMES, MODEL_TITLES, PAPER_MODELS, REGISTRY, ModelConfig
 from pfnet.training.config import PRESETS, TrainConfig
 
 
@@ -47,13 +47,17 @@ def test_model_list_and_configs_need_no_torch() -> None:
 
 
 def test_one_list_of_models_in_the_papers_order() -> None:
-    assert MODEL_NAMES == tuple(REGISTRY) == ("pfnet", "pfnet-vanilla", "mr-cmlp", "cmlp", "mlp")
+    assert MODEL_NAMES == tuple(REGISTRY)
+    assert PAPER_MODELS == ("pfnet", "pfnet-vanilla", "mr-cmlp", "cmlp", "mlp")
+    assert set(MODEL_NAMES) - set(PAPER_MODELS) == {"pfnet-mirror"}
     assert MODEL_TITLES["pfnet-vanilla"] == "PF-Net (vanilla)"
     from pfnet.study import STUDY_MODELS
     from pfnet.study.paper import PAPER_ORDER
 
-    assert STUDY_MODELS == PAPER_ORDER == MODEL_NAMES
-    with pytest.raises(ConfigError, match="model must be one of pfnet, pfnet-vanilla, mr-cmlp"):
+    assert STUDY_MODELS == PAPER_ORDER == PAPER_MODELS
+    with pytest.raises(
+        ConfigError, match="model must be one of pfnet, pfnet-vanilla, pfnet-mirror"
+    ):
         ModelConfig(model="pointnet")
 
 

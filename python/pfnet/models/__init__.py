@@ -1,4 +1,5 @@
-"""Completion models: PF-Net, PF-Net (vanilla), the MLP / CMLP / MR-CMLP baselines.
+"""Completion models: PF-Net, PF-Net (vanilla), the MLP / CMLP / MR-CMLP baselines, and
+PF-Net + mirror (not the paper's: PF-Net reading the partial's mirror images).
 
 Every generator is a :class:`CompletionModel`: it maps ``partial (B, n, 3)`` to a
 :class:`Completion`, carries ``n_points`` (complete cloud size it was trained for) and
@@ -17,7 +18,13 @@ import importlib
 from typing import Any
 
 from pfnet.models.config import INIT_SCHEMES, ModelConfig
-from pfnet.models.registry import MODEL_NAMES, MODEL_TITLES, REGISTRY, RegisteredModel
+from pfnet.models.registry import (
+    MODEL_NAMES,
+    MODEL_TITLES,
+    PAPER_MODELS,
+    REGISTRY,
+    RegisteredModel,
+)
 
 # Names importable from here that need torch: imported on first access.
 _LAZY = {
@@ -27,6 +34,7 @@ _LAZY = {
     "Discriminator": "pfnet.models.pfnet",
     "PFNet": "pfnet.models.pfnet",
     "PFNetVanilla": "pfnet.models.pfnet",
+    "PFNetMirror": "pfnet.models.mirror",
     "MLPCompletion": "pfnet.models.baselines",
     "CMLPCompletion": "pfnet.models.baselines",
     "MRCMLPCompletion": "pfnet.models.baselines",
@@ -51,6 +59,7 @@ __all__ = [
     "MODELS",
     "MODEL_NAMES",
     "MODEL_TITLES",
+    "PAPER_MODELS",
     "REGISTRY",
     "CMLPCompletion",
     "Completion",
@@ -61,6 +70,7 @@ __all__ = [
     "ModelConfig",
     "MultiResolutionEncoder",
     "PFNet",
+    "PFNetMirror",
     "PFNetVanilla",
     "PointPyramidDecoder",
     "RegisteredModel",

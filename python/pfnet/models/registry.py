@@ -24,12 +24,14 @@ class RegisteredModel:
         title: How the paper's tables name it (``PF-Net (vanilla)``).
         module: The module defining its class.
         class_name: The class, a :class:`pfnet.models.CompletionModel`.
+        paper: One of the paper's five networks (its tables and the study compare these).
     """
 
     name: str
     title: str
     module: str
     class_name: str
+    paper: bool = True
 
     def load(self) -> type[CompletionModel]:
         """The generator class (imports torch)."""
@@ -42,6 +44,10 @@ REGISTRY: dict[str, RegisteredModel] = {
     for entry in (
         RegisteredModel("pfnet", "PF-Net", "pfnet.models.pfnet", "PFNet"),
         RegisteredModel("pfnet-vanilla", "PF-Net (vanilla)", "pfnet.models.pfnet", "PFNetVanilla"),
+        # not the paper's: PF-Net (vanilla) reading the partial's mirror images (issue 34)
+        RegisteredModel(
+            "pfnet-mirror", "PF-Net + mirror", "pfnet.models.mirror", "PFNetMirror", paper=False
+        ),
         RegisteredModel("mr-cmlp", "MR-CMLP", "pfnet.models.baselines", "MRCMLPCompletion"),
         RegisteredModel("cmlp", "CMLP", "pfnet.models.baselines", "CMLPCompletion"),
         RegisteredModel("mlp", "MLP", "pfnet.models.baselines", "MLPCompletion"),
@@ -49,4 +55,6 @@ REGISTRY: dict[str, RegisteredModel] = {
 }
 
 MODEL_NAMES: tuple[str, ...] = tuple(REGISTRY)
+PAPER_MODELS: tuple[str, ...] = tuple(name for name, entry in REGISTRY.items() if entry.paper)
+"""The paper's five networks, best first: what the study and its tables compare."""
 MODEL_TITLES: dict[str, str] = {name: entry.title for name, entry in REGISTRY.items()}

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from pfnet.models.registry import MODEL_NAMES
+from pfnet.models.registry import PAPER_MODELS
 
 # The paper's ranking, best first: the registry lists the models in that order (Table 4).
-PAPER_ORDER = MODEL_NAMES
+PAPER_ORDER = PAPER_MODELS
 
 # The paper's figures (×1000) the tables are compared with (DESIGN.md §5).
 

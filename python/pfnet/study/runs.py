@@ -11,11 +11,11 @@ from typing import Any
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.models.registry import MODEL_NAMES
+from pfnet.models.registry import PAPER_MODELS
 from pfnet.study.aggregate import _summary
 
 # The ablation's generators: every registered model, in the paper's order (PF-Net first).
-STUDY_MODELS = MODEL_NAMES
+STUDY_MODELS = PAPER_MODELS
 
 
 BASE_RATIO = 0.25

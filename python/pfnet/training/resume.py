@@ -105,7 +105,13 @@ def start_from(generator: nn.Module, config: TrainConfig) -> None:
     from pfnet.checkpoint import load_checkpoint
 
     source, trained = load_checkpoint(config.init_from)
-    keys = ("model", "width", "n_points", "missing_ratio")
+    # a model that grows from another (pfnet-mirror from pfnet-vanilla) takes its weights
+    grows = trained.model in getattr(generator, "grows_from", ())
+    keys = (
+        ("width", "n_points", "missing_ratio")
+        if grows
+        else ("model", "width", "n_points", "missing_ratio")
+    )
     differ = [
         f"{k} {getattr(trained, k)!r} (run: {getattr(config, k)!r})"
         for k in keys
@@ -113,4 +119,7 @@ def start_from(generator: nn.Module, config: TrainConfig) -> None:
     ]
     if differ:
         raise ConfigError(f"init_from {config.init_from} is another network: {', '.join(differ)}")
-    generator.load_state_dict(source.state_dict())
+    if grows:
+        generator.grow_from(source)
+    else:
+        generator.load_state_dict(source.state_dict())

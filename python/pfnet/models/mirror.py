@@ -1,0 +1,268 @@
+"""PF-Net with mirror images: the partial's reflections across its own symmetry planes, given
+to the encoder as extra points with flag channels (issue 34 item 3). Not the paper's network.
+
+Furniture, airplanes, cars and ships are mirror-symmetric about a vertical plane, and a
+partial scan that misses a piece on one side often still holds its mirror image on the other.
+The faithful PF-Net has no way to use that: its encoder sees the partial alone. A mirror of the
+input that learns nothing puts more of its points on the missing surface than PF-Net does
+(docs/scan-protocol.md), so this model hands the encoder those mirror images and lets it learn
+what to keep.
+
+The planes are found inside :meth:`MirrorEncoder.forward`, from the partial alone and without
+gradients, so every path that runs a generator (``complete``, ``predict``, the ONNX export)
+gets them without a step of its own:
+
+* **Search.** Vertical planes (containing the y axis, the up axis of every model frame):
+  :data:`N_ANGLES` normal directions over half a turn and :data:`OFFSETS` about the partial's
+  centroid. Each is scored by the share of 128 farthest-point samples of the partial whose
+  reflections land in a voxel of a :data:`GRID`³ occupancy grid of the partial over the
+  network's unit cube (the same score as :func:`pfnet.data.symmetry.estimate_mirror_plane`,
+  with a voxel grid in place of its KD-tree so that it runs in the network).
+* **Two planes**: the best, and the best whose normal is at least 30 degrees from it, as the
+  mirror baseline takes (a table's other plane is often the one that fills its gap).
+* **Input.** At each of the encoder's three resolutions, the scale's points with features
+  ``(x, y, z, 0, 0, 0)`` and half as many mirror points (of the even-indexed points, every
+  other reflected across the first plane, the rest across the second) with ``(x', y', z', 1,
+  empty, share)``: ``empty`` is 1 where the reflection lands in a voxel the partial does not
+  occupy (where it may fill the missing region), ``share`` is the plane's score. Each CMLP
+  takes six channels and 1.5 times the points (twice cost a CPU step 2.8 times the
+  vanilla's); the decoder is PF-Net's.
+
+It trains like PF-Net (vanilla): the multi-stage Chamfer loss without the discriminator.
+:meth:`PFNetMirror.grow_from` starts it from a trained PF-Net (vanilla) generator: every
+weight is copied, and the first layer of each CMLP keeps its xyz weights with zeros for the
+three new channels.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from pfnet.models.completion import Completion, CompletionModel
+from pfnet.models.layers import check_partial, gather_points, multi_resolution_indices
+from pfnet.models.pfnet import CMLP as _CMLP
+from pfnet.models.pfnet import (
+    ENCODER_CMLP_CHANNELS,
+    N_SCALES,
+    PFNetVanilla,
+    PointPyramidDecoder,
+)
+
+N_ANGLES = 24  # normal directions over half a turn: every 7.5 degrees
+OFFSETS = tuple(0.0375 * k for k in range(-8, 9))  # about the centroid, in frame units
+GRID = 32  # voxels per side of the occupancy grid over [-1, 1]^3 (0.0625 per voxel)
+SEARCH_POINTS = 128  # farthest-point samples of the partial that score each plane
+MIN_ANGLE_STEPS = 4  # the second plane's normal: at least 4 x 7.5 = 30 degrees away
+IN_CHANNELS = 6  # x, y, z, mirrored, empty, share
+UP_AXIS = 1
+
+
+class CMLP(_CMLP):
+    """PF-Net's CMLP reading :data:`IN_CHANNELS` features per point."""
+
+    def __init__(self, width: float = 1.0) -> None:
+        super().__init__(width, ENCODER_CMLP_CHANNELS)
+        first = self.mlp.layers[0][0]
+        self.mlp.layers[0][0] = nn.Conv1d(IN_CHANNELS, first.out_channels, 1)
+
+
+def _occupancy(points: Tensor) -> Tensor:
+    """``(B, GRID³ + 1)`` float occupancy of ``(B, n, 3)`` points (the last cell: outside)."""
+    cells = _cells(points)
+    grid = torch.zeros(points.shape[0], GRID**3 + 1, dtype=points.dtype, device=points.device)
+    grid.scatter_(1, cells, torch.ones_like(cells, dtype=points.dtype))
+    grid[:, -1] = 0.0  # a point outside the cube lands on nothing
+    return grid
+
+
+def _cells(points: Tensor) -> Tensor:
+    """The flat voxel index of each of ``(B, ..., 3)`` points; ``GRID³`` outside the cube."""
+    voxel = torch.floor((points + 1.0) * (GRID / 2.0)).long()
+    inside = ((voxel >= 0) & (voxel < GRID)).all(dim=-1)
+    flat = (voxel[..., 0] * GRID + voxel[..., 1]) * GRID + voxel[..., 2]
+    flat = torch.where(inside, flat, torch.full_like(flat, GRID**3))
+    return flat.reshape(points.shape[0], -1)
+
+
+def _lookup(grid: Tensor, points: Tensor) -> Tensor:
+    """Occupancy (0 or 1) of the voxel of each of ``(B, ..., 3)`` points, shaped ``(B, ...)``."""
+    return torch.gather(grid, 1, _cells(points)).reshape(points.shape[:-1])
+
+
+def _reflect(points: Tensor, normal: Tensor, offset: Tensor) -> Tensor:
+    """Reflect ``(B, ..., 3)`` points across planes ``x · normal = offset``, normals
+    ``(B, ..., 3)`` and offsets ``(B, ...)`` broadcasting against them."""
+    distance = (points * normal).sum(dim=-1, keepdim=True) - offset.unsqueeze(-1)
+    return points - 2.0 * distance * normal
+
+
+def _normals(dtype: torch.dtype, device: torch.device) -> Tensor:
+    angles = torch.arange(N_ANGLES, dtype=dtype, device=device) * (math.pi / N_ANGLES)
+    normals = torch.zeros(N_ANGLES, 3, dtype=dtype, device=device)
+    horizontal = [axis for axis in range(3) if axis != UP_AXIS]
+    normals[:, horizontal[0]] = torch.cos(angles)
+    normals[:, horizontal[1]] = torch.sin(angles)
+    return normals
+
+
+class MirrorPlanes(nn.Module):
+    """The two vertical mirror planes of each partial cloud (no parameters, no gradients)."""
+
+    def forward(self, partial: Tensor, samples: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Find the planes.
+
+        Args:
+            partial: ``(B, n, 3)`` partial clouds in the network's frame.
+            samples: ``(B, s, 3)`` points of each that score the candidates.
+
+        Returns:
+            ``(normals (B, 2, 3), offsets (B, 2), shares (B, 2), grid (B, GRID³ + 1))``:
+            the best plane and the best at least 30 degrees from it, their scores, and the
+            partial's occupancy grid.
+        """
+        batch = partial.shape[0]
+        grid = _occupancy(partial)
+        normals = _normals(partial.dtype, partial.device)  # (A, 3)
+        offsets = torch.tensor(OFFSETS, dtype=partial.dtype, device=partial.device)  # (D,)
+        centre = partial.mean(dim=1)  # (B, 3)
+        # candidate (a, d): normal a, offset centre . normal_a + d
+        plane_offsets = (centre @ normals.T).unsqueeze(-1) + offsets  # (B, A, D)
+        n_a, n_d = plane_offsets.shape[1:]
+        reflected = _reflect(
+            samples[:, None, None],  # (B, 1, 1, s, 3)
+            normals[None, :, None, None],  # (1, A, 1, 1, 3)
+            plane_offsets.unsqueeze(-1),  # (B, A, D, 1)
+        )  # (B, A, D, s, 3)
+        share = _lookup(grid, reflected).mean(dim=-1)  # (B, A, D)
+        best_share, best_offset = share.max(dim=-1)  # (B, A)
+        first = best_share.argmax(dim=1)  # (B,)
+        steps = torch.arange(n_a, device=partial.device)
+        apart = (steps[None, :] - first[:, None]).remainder(n_a)
+        apart = torch.minimum(apart, n_a - apart)
+        masked = torch.where(apart >= MIN_ANGLE_STEPS, best_share, torch.full_like(best_share, -1))
+        second = masked.argmax(dim=1)
+        chosen = torch.stack([first, second], dim=1)  # (B, 2)
+        rows = torch.arange(batch, device=partial.device)[:, None]
+        chosen_offsets = plane_offsets[rows, chosen, best_offset[rows, chosen]]
+        return normals[chosen], chosen_offsets, best_share[rows, chosen], grid
+
+
+class MirrorEncoder(nn.Module):
+    """PF-Net's multi-resolution encoder over the partial and its mirror images.
+
+    Args:
+        width: Multiplier of every layer's channels.
+    """
+
+    def __init__(self, width: float = 1.0) -> None:
+        super().__init__()
+        self.planes = MirrorPlanes()
+        self.cmlps = nn.ModuleList([CMLP(width) for _ in range(N_SCALES)])
+        self.fuse = nn.Sequential(nn.Conv1d(N_SCALES, 1, 1), nn.BatchNorm1d(1), nn.ReLU())
+        self.out_features = self.cmlps[0].out_features
+
+    def forward(self, partial: Tensor, scale_indices: Tensor | None = None) -> Tensor:
+        """Encode partial clouds (the arguments of
+        :meth:`pfnet.models.pfnet.MultiResolutionEncoder.forward`) -> ``(B, 1920 · width)``."""
+        check_partial(partial, min_points=2 ** (N_SCALES - 1))
+        n = partial.shape[1]
+        if scale_indices is None:
+            scale_indices = torch.from_numpy(multi_resolution_indices(partial, N_SCALES))
+        if scale_indices.shape != (partial.shape[0], n // 2):
+            raise ValueError(
+                f"scale_indices must have shape {(partial.shape[0], n // 2)} for partial "
+                f"{tuple(partial.shape)}; got {tuple(scale_indices.shape)}"
+            )
+        scale_indices = scale_indices.to(partial.device)
+        with torch.no_grad():
+            # the first farthest points spread over the whole partial
+            samples = gather_points(partial, scale_indices[:, : min(SEARCH_POINTS, n // 2)])
+            normals, offsets, shares, grid = self.planes(partial.detach(), samples.detach())
+        latents = []
+        for s in range(N_SCALES):
+            points = partial if s == 0 else gather_points(partial, scale_indices[:, : n // 2**s])
+            latents.append(
+                self.cmlps[s](self._with_mirrors(points, normals, offsets, shares, grid))
+            )
+        feature_map = torch.stack(latents, dim=1)
+        return self.fuse(feature_map).squeeze(1)
+
+    @staticmethod
+    def _with_mirrors(
+        points: Tensor, normals: Tensor, offsets: Tensor, shares: Tensor, grid: Tensor
+    ) -> Tensor:
+        """``(B, m, 3)`` points -> ``(B, m + ceil(m / 2), 6)``: the points, then the mirror
+        images of the even-indexed ones."""
+        batch, m = points.shape[:2]
+        source = points[:, 0::2]
+        half = source.shape[1]
+        plane = torch.arange(half, device=points.device).remainder(2)  # alternate the planes
+        normal = normals[:, plane]  # (B, half, 3)
+        offset = offsets[:, plane]  # (B, half)
+        with torch.no_grad():
+            mirrored = _reflect(source, normal, offset)
+            empty = 1.0 - _lookup(grid, mirrored)
+            share = shares[:, plane]
+        zeros = points.new_zeros(batch, m, 3)
+        original = torch.cat([points, zeros], dim=2)
+        flags = torch.stack([torch.ones_like(empty), empty, share], dim=2)
+        return torch.cat([original, torch.cat([mirrored, flags], dim=2)], dim=1)
+
+
+class PFNetMirror(CompletionModel):
+    """PF-Net (vanilla) whose encoder also reads the partial's mirror images
+    (:class:`MirrorEncoder`); the decoder and the loss are PF-Net's.
+
+    Args:
+        n_points: Size N of the complete clouds the model is trained for.
+        n_missing: M, the number of points it predicts (a multiple of 128).
+        width: Multiplier of every hidden layer.
+    """
+
+    adversarial: ClassVar[bool] = False
+    multi_resolution: ClassVar[bool] = True
+    multi_stage: ClassVar[bool] = True
+    # the registered models whose trained generators grow_from accepts
+    grows_from: ClassVar[tuple[str, ...]] = ("pfnet", "pfnet-vanilla")
+
+    def __init__(self, n_points: int, n_missing: int, width: float = 1.0) -> None:
+        super().__init__()
+        self.n_points = n_points
+        self.n_missing = n_missing
+        self.encoder = MirrorEncoder(width)
+        self.decoder = PointPyramidDecoder(self.encoder.out_features, n_missing, width)
+
+    def forward(self, partial: Tensor, scale_indices: Tensor | None = None) -> Completion:
+        """Predict the missing region (the arguments and result of
+        :meth:`pfnet.models.pfnet.PFNet.forward`)."""
+        return self.decoder(self.encoder(partial, scale_indices))
+
+    def grow_from(self, trained: PFNetVanilla) -> None:
+        """Start from a trained PF-Net generator of the same width and sizes: its weights,
+        with zero weights on the three mirror channels of each CMLP's first layer.
+
+        Raises:
+            ValueError: A weight of another shape (another width or ``n_missing``).
+        """
+        source = trained.state_dict()
+        own = self.state_dict()
+        for key, value in source.items():
+            if key not in own:
+                raise ValueError(f"weight {key} of the trained generator has no place here")
+            target = own[key]
+            # a CMLP's first layer: the same outputs, 3 of its IN_CHANNELS inputs
+            widened = target.ndim == 3 and target.shape[1] == IN_CHANNELS
+            if target.shape == value.shape:
+                target.copy_(value)
+            elif widened and value.shape == (target.shape[0], 3, target.shape[2]):
+                target.zero_()
+                target[:, :3] = value
+            else:
+                raise ValueError(
+                    f"weight {key} is {tuple(value.shape)} in the trained generator but "
+                    f"{tuple(target.shape)} here (another width or size)"
+                )
