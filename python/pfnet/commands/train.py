@@ -74,7 +74,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", choices=MODEL_NAMES, help="generator (default: pfnet)")
     parser.add_argument("--preset", choices=tuple(PRESETS), help="base configuration (paper)")
     parser.add_argument("--config", type=Path, help="TOML file of config keys over the preset")
-    parser.add_argument("--crop", choices=TRAIN_CROPS, help="training crop (default viewpoint)")
+    parser.add_argument(
+        "--crop",
+        choices=TRAIN_CROPS,
+        help="training crop (default viewpoint); scanner: what a depth camera sees from a "
+        "random position, validated on the scanner test protocol (use --missing-ratio 0.5)",
+    )
     parser.add_argument(
         "--schedule",
         choices=SCHEDULES,
@@ -119,6 +124,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N"
+    )
+    parser.add_argument(
+        "--threads",
+        type=_threads,
+        default="auto",
+        help="torch threads of each process on the CPU: N, or auto (default): the cores not "
+        "busy with other work when the run starts, shared among torchrun's processes "
+        "(torch's own default, one per core, is up to 1.7x slower on a shared machine); "
+        "OMP_NUM_THREADS, when set, decides instead",
     )
     parser.add_argument(
         "--resume",
@@ -180,6 +194,33 @@ DEFAULT_PRESET_NOTE = (
 )
 
 
+def _threads(text: str) -> str | int:
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be auto or a positive whole number, got {text!r}")
+    return value
+
+
+def torch_threads(threads: str | int) -> int | None:
+    """The torch threads ``--threads`` asks for, or ``None`` to leave torch's setting
+    (``OMP_NUM_THREADS`` given with ``auto``)."""
+    import os
+
+    from pfnet.processes import idle_cpus
+
+    if threads != "auto":
+        return int(threads)
+    if os.environ.get("OMP_NUM_THREADS"):
+        return None
+    local = int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1)  # torchrun's processes here
+    return max(1, idle_cpus() // max(1, local))
+
+
 def run(args: argparse.Namespace) -> int:
     """Train; print a one-line summary. Exit code 130 after Ctrl-C (the run is saved)."""
     config = build_config(args)
@@ -200,6 +241,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"pfnet train: note: {DEFAULT_PRESET_NOTE}", file=sys.stderr)
     from pfnet.training.loop import train
 
+    threads = torch_threads(args.threads)
+    if threads is not None:
+        import torch
+
+        from pfnet.processes import usable_cpus
+
+        torch.set_num_threads(threads)
+        if args.threads == "auto" and threads < usable_cpus():
+            print(
+                f"pfnet train: note: {threads} torch thread(s) per process: other work keeps "
+                f"the rest of the {usable_cpus()} cores busy (--threads N to choose)",
+                file=sys.stderr,
+            )
     summary = train(
         config,
         args.data,
