@@ -13,14 +13,27 @@ from pfnet.data.augment import Augmentation
 from pfnet.data.crops import missing_count, test_protocol_viewpoints
 from pfnet.data.format import CloudSet, load_split
 from pfnet.data.scan_frame import scan_angle, scan_frame, up_rotation
+from pfnet.data.scanner import scanner_sample, test_sample_rng
 from pfnet.errors import ConfigError, DataError
 from pfnet.models.config import FRAMES
 
-__all__ = ["CROPS", "CompletionDataset"]
+__all__ = ["CROPS", "TEST_CROPS", "CompletionDataset", "validation_crop"]
 
-CROPS: tuple[str, ...] = ("test", "viewpoint", "sphere", "multi")
+CROPS: tuple[str, ...] = ("test", "viewpoint", "sphere", "multi", "scanner", "scanner-test")
 """Crop modes: the deterministic test protocol, one random viewpoint of the five (the
-authors' training crop), one random direction on the unit sphere, or two random viewpoints."""
+authors' training crop), one random direction on the unit sphere, two random viewpoints, a
+depth camera's view from a random position (:mod:`pfnet.data.scanner`), or the scanner's
+deterministic test protocol."""
+
+TEST_CROPS: tuple[str, ...] = ("test", "scanner-test")
+"""The deterministic crops: no fresh points, no augmentation, the same samples every epoch."""
+
+
+def validation_crop(train_crop: str) -> str:
+    """The deterministic crop that validates a run trained with ``train_crop``: the scanner
+    test protocol for the scanner crop, the paper's test protocol for the others."""
+    return "scanner-test" if train_crop == "scanner" else "test"
+
 
 _MULTI_REGIONS = 2  # paper §4.4: pieces lost "in two random positions"
 
@@ -29,9 +42,11 @@ class CompletionDataset(Dataset):
     """Completion samples of one split: the complete cloud, the partial input, the missing part.
 
     Crops are made on the fly: ``crop="test"`` is the deterministic test protocol (sample
-    ``i`` loses the points nearest ``VIEWPOINTS[i % 5]``); the random crops are a function of
-    ``(seed, epoch, index)`` only, so they are reproducible and independent of the DataLoader's
-    workers. Call :meth:`set_epoch` before each epoch for fresh random crops, or index with
+    ``i`` loses the points nearest ``VIEWPOINTS[i % 5]``), ``crop="scanner-test"`` the
+    scanner's (sample ``i`` is what ``scanner_test_cameras(S)[i]`` sees, resampled to
+    ``N − m``, with ``m`` of the hidden points missing: :mod:`pfnet.data.scanner`); the random
+    crops are a function of ``(seed, epoch, index)`` only, so they are reproducible and
+    independent of the DataLoader's workers. Call :meth:`set_epoch` before each epoch for fresh random crops, or index with
     ``(epoch, index)`` pairs: workers that live across epochs (``persistent_workers=True``)
     keep the dataset object they started with, so the training loop's batch sampler sends
     the epoch with every index.
@@ -46,7 +61,7 @@ class CompletionDataset(Dataset):
             (``pfnet prepare --pool``): every access draws a new cloud of N points from the
             shape's pool (without replacement, seeded by ``(seed, epoch, index)``) before the
             crop, as the authors' loader draws 2048 of the raw points every time. The test
-            protocol always uses the stored cloud.
+            protocols always use the stored cloud.
         augment: With a random crop: an :class:`~pfnet.data.augment.Augmentation` applied
             to the complete cloud before the crop (seeded by ``(seed, epoch, index)``).
         frame: ``shape`` (the stored frame, the paper's), ``scan`` (every sample normalised
@@ -102,11 +117,16 @@ class CompletionDataset(Dataset):
             )
         self.n_missing = missing_count(self.n_points, missing_ratio)
         self.epoch = 0
-        self.fresh_points = bool(fresh_points) and crop != "test" and self.clouds.extra is not None
+        deterministic = crop in TEST_CROPS
+        self.fresh_points = (
+            bool(fresh_points) and not deterministic and self.clouds.extra is not None
+        )
         self.augment = (
-            augment if augment is not None and augment.active and crop != "test" else None
+            augment if augment is not None and augment.active and not deterministic else None
         )
         self._viewpoints = test_protocol_viewpoints(len(self.clouds))
+        # the scanner's cameras stand above the data set's up axis (y when it is not known)
+        self._camera_up = 1 if up_axis is None else up_axis
 
     def __len__(self) -> int:
         return len(self.clouds)
@@ -165,6 +185,9 @@ class CompletionDataset(Dataset):
             partial, missing = crop_by_viewpoint(
                 complete, self._viewpoints[index], n_missing=self.n_missing
             )
+        elif self.crop in ("scanner", "scanner-test"):
+            partial, missing = self._scanner_sample(index, epoch, complete)
+            complete = np.concatenate([partial, missing])  # N points, as the model's sample
         else:
             partial, missing = random_crop(
                 complete,
@@ -186,10 +209,24 @@ class CompletionDataset(Dataset):
             "frame_radius": torch.tensor(radius, dtype=torch.float32),
         }
 
+    def _scanner_sample(self, index, epoch, cloud):
+        """``(partial, missing)`` of the scanner crops: a random camera drawn from
+        ``(seed, epoch, index)``, or the test protocol's camera and resampling of sample
+        ``index`` (:func:`pfnet.data.scanner.scanner_test_crop`; independent of the data
+        set's seed, as the paper's test crop is)."""
+        if self.crop == "scanner-test":
+            rng = test_sample_rng(index)
+        else:
+            rng = np.random.default_rng(self.crop_seed(index, epoch))
+        what = f"{self.split} sample {index} ({self.clouds.name[index]})"
+        return scanner_sample(
+            cloud, self.n_points, self.n_missing, rng, up_axis=self._camera_up, what=what
+        )
+
     def _scan_frame(self, index, partial, missing, complete):
-        """``(partial, missing, complete, radius)`` in the partial's own frame (test crop:
+        """``(partial, missing, complete, radius)`` in the partial's own frame (test crops:
         after the scan protocol's turn about the up axis, unless ``turn_test`` is off)."""
-        if self.crop == "test" and self.turn_test and self.up_axis is not None:
+        if self.crop in TEST_CROPS and self.turn_test and self.up_axis is not None:
             turn = up_rotation(scan_angle(index), self.up_axis).T
             partial, missing, complete = (
                 np.asarray(c, np.float64) @ turn for c in (partial, missing, complete)

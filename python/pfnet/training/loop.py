@@ -3,7 +3,8 @@
 Per batch, adversarial models take one discriminator step then one generator step (as the
 authors' ``Train_PFNet.py``); the others take a generator step on the completion loss alone.
 After every epoch the generator (its weight average, with ``ema``) is validated on the
-``val`` split with the deterministic test protocol and the same metric functions as
+``val`` split with the deterministic test protocol (the scanner's for a run trained on
+scanner partials, :func:`pfnet.data.dataset.validation_crop`) and the same metric functions as
 ``pfnet evaluate`` (:mod:`pfnet.metrics`).
 
 Files of a run folder (written by rank 0 only under DDP, each replaced atomically):
@@ -128,7 +129,7 @@ class Trainer:
         resume: bool = False,
         val_dir: Path | None = None,
     ) -> None:
-        from pfnet.data.dataset import CompletionDataset
+        from pfnet.data.dataset import CompletionDataset, validation_crop
 
         self.context = context
         self.device = context.device
@@ -174,7 +175,7 @@ class Trainer:
             val_dir or data_dir,
             "val",
             missing_ratio=config.missing_ratio,
-            crop="test",
+            crop=validation_crop(config.crop),
             seed=config.seed,
             frame=config.frame,
             up_axis=scan_up_axis(config, val_dir or data_dir),
