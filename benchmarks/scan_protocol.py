@@ -1,11 +1,14 @@
 """The scan protocol, measured through ``pfnet complete`` itself (DESIGN.md §3).
 
 Each test partial of the paper's protocol (sample *i* loses the points nearest
-``VIEWPOINTS[i % 5]``) is put in a pose of its own (:func:`pfnet.data.scan_frame.scan_pose`:
-a random turn about the up axis, a random scale and offset; with ``--up z`` stood z-up),
-saved as ``.npy``, and completed by the ``pfnet complete`` command in a new process, as a
-user would. The completions are mapped back through the poses and scored against the removed
-points in the data set's frame (CD-L2 ×1000, F-score@0.01), beside:
+``VIEWPOINTS[i % 5]``; with ``--scans scanner``, what a depth camera sees of it instead:
+:func:`pfnet.data.scanner.scanner_test_crop`, sample *i* scanned from test camera *i*, the
+hidden points the removed ones) is put in a pose of its own
+(:func:`pfnet.data.scan_frame.scan_pose`: a random turn about the up axis, a random scale
+and offset; with ``--up z`` stood z-up), saved as ``.npy``, and completed by the ``pfnet
+complete`` command in a new process, as a user would. The completions are mapped back
+through the poses and scored against the removed points in the data set's frame (CD-L2
+×1000, F-score@0.01), beside:
 
 * the same model given the partial in the complete shape's frame (the paper's protocol, what
   ``pfnet predict`` does: information a scan does not have);
@@ -14,7 +17,7 @@ points in the data set's frame (CD-L2 ×1000, F-score@0.01), beside:
   the scan alone.
 
     python benchmarks/scan_protocol.py --data data/sh3d [--checkpoint NAME] [--up z] \\
-        [--json results/scan-protocol/sh3d-small.json]
+        [--scans scanner] [--json results/scan-protocol/sh3d-small.json]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import numpy as np
 
 from pfnet.data import load_split, test_protocol_crop
 from pfnet.data.scan_frame import UP_AXES, scan_normalisation, scan_pose, to_y_up
+from pfnet.data.scanner import scanner_test_crop
 from pfnet.data.symmetry import mirror_completion
 from pfnet.io import read_point_cloud
 from pfnet.metrics import sample_metrics, summarize
@@ -74,13 +78,37 @@ def mirror_predictions(scans, up, n_missing):
     return out
 
 
+SCANS = ("viewpoint", "scanner")
+"""The test partials: the paper's viewpoint crop, or what a depth camera sees."""
+
+DEFAULT_RATIOS = {"viewpoint": 0.25, "scanner": 0.5}
+"""The missing ratio of each kind of scan: the paper's; half, about what a camera misses of
+SweetHome3D's furniture (docs/data.md)."""
+
+
+def test_partials(points, scans, ratio):
+    """``(partial, removed)`` of a split's complete clouds: the deterministic test protocol of
+    the viewpoint crop or of the scanner (y-up, the data sets' axis)."""
+    if scans == "scanner":
+        return scanner_test_crop(points, ratio)
+    return test_protocol_crop(points, ratio)
+
+
+test_partials.__test__ = False  # a helper, not a pytest test
+
+
 def shape_frame_predictions(partial, checkpoint, runtime):
-    """The model given each partial in the complete shape's frame (the paper's protocol)."""
+    """The model given each partial in the complete shape's frame (the paper's protocol),
+    resampled to the model's input size as ``complete`` does (a scanner partial need not have
+    the size the model was trained on)."""
+    from pfnet.completion import network_input
     from pfnet.inference import predict_missing
     from pfnet.runtimes import load_generator
 
     loaded = load_generator(checkpoint, runtime=runtime, device="cpu")
-    return list(predict_missing(loaded.model, np.asarray(partial, np.float32), 32, "cpu"))
+    n_input = int(loaded.model.n_points) - int(loaded.model.n_missing)
+    batch = np.stack([network_input(np.asarray(p, np.float64), n_input) for p in partial])
+    return list(predict_missing(loaded.model, batch.astype(np.float32), 32, "cpu"))
 
 
 def score(predictions, removed, categories):
@@ -95,7 +123,18 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="a prepared data set")
     parser.add_argument("--split", default="test")
-    parser.add_argument("--ratio", type=float, default=0.25, help="missing ratio (0.25)")
+    parser.add_argument(
+        "--scans",
+        default="viewpoint",
+        choices=SCANS,
+        help="viewpoint: the paper's crop (default); scanner: what a depth camera sees",
+    )
+    parser.add_argument(
+        "--ratio",
+        type=float,
+        default=None,
+        help="missing ratio (0.25 for viewpoint scans, 0.5 for scanner ones)",
+    )
     parser.add_argument("--checkpoint", default=None, help="model (default: the shipped one)")
     parser.add_argument("--runtime", default="auto", choices=("auto", "torch", "onnx"))
     parser.add_argument("--up", default="y", choices=UP_AXES, help="stand the scans y- or z-up")
@@ -116,10 +155,12 @@ def main(argv=None) -> None:
         help="leave out the mirror baseline (slow on big splits)",
     )
     args = parser.parse_args(argv)
+    if args.ratio is None:
+        args.ratio = DEFAULT_RATIOS[args.scans]
 
     clouds = load_split(args.data, args.split)
     points = np.asarray(clouds.points, np.float32)
-    partial, removed = test_protocol_crop(points, args.ratio)
+    partial, removed = test_partials(points, args.scans, args.ratio)
     categories = [str(c) for c in clouds.category]
     poses = [
         scan_pose(i, up=args.up, seed=args.seed, turn=not args.no_turn) for i in range(len(points))
@@ -156,7 +197,10 @@ def main(argv=None) -> None:
             np.save(f"{stem}-completion.npy", np.asarray(mapped_back[i], np.float32))
             np.save(f"{stem}-removed.npy", removed[i].astype(np.float32))
 
-    print(f"{len(points)} {args.split} partials of {args.data}, {args.up}-up; {said}")
+    print(
+        f"{len(points)} {args.split} {args.scans} partials of {args.data} "
+        f"({args.ratio:g} missing), {args.up}-up; {said}"
+    )
     print(f"pfnet complete: {elapsed:.1f} s for all, in a new process")
     names = list(tables)
     header = "category".ljust(10) + "".join(f" | {n[:28]:>28}" for n in names)
@@ -178,6 +222,7 @@ def main(argv=None) -> None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         document = {
             "protocol": "scan",
+            "scans": args.scans,
             "data": str(args.data),
             "split": args.split,
             "missing_ratio": args.ratio,

@@ -265,3 +265,19 @@ def test_the_trainer_validates_a_scanner_run_on_the_scanner_test_crop(
     assert batch["partial"].shape == (4, 256, 3) and batch["missing"].shape == (4, 256, 3)
     paper = Trainer(config, tiny_dataset, tmp_path / "b", context)
     assert (paper.train_set.crop, paper.val_set.crop) == ("viewpoint", "test")
+
+
+def test_the_scan_protocol_benchmark_takes_scanner_partials() -> None:
+    from scripts import load_script
+
+    from pfnet.data import test_protocol_crop
+
+    script = load_script("scan_protocol")
+    clouds = np.stack([_sphere(512, seed) * 0.9 for seed in range(3)]).astype(np.float32)
+    for scans, crop in (("scanner", scanner_test_crop), ("viewpoint", test_protocol_crop)):
+        ratio = script.DEFAULT_RATIOS[scans]
+        got, expected = script.test_partials(clouds, scans, ratio), crop(clouds, ratio)
+        assert all(np.array_equal(a, b) for a, b in zip(got, expected, strict=True))
+    assert script.DEFAULT_RATIOS == {"viewpoint": 0.25, "scanner": 0.5}
+    with pytest.raises(SystemExit):
+        script.main(["--data", "x", "--scans", "lidar"])
