@@ -59,7 +59,7 @@ def test_occupancy_lookup_matches_a_naive_voxel_set():
 
     occupied = {voxel(p) for p in cloud if all(0 <= v < GRID for v in voxel(p))}
     expected = [float(voxel(q) in occupied) for q in queries]
-    grid = _occupancy(torch.from_numpy(cloud)[None])
+    grid = _occupancy(torch.from_numpy(cloud)[None], torch.zeros(1, GRID**3 + 1))
     found = _lookup(grid, torch.from_numpy(queries)[None])[0]
     assert found.tolist() == expected
     assert 80 < sum(expected) < 400  # the check saw both kinds of points
@@ -159,3 +159,40 @@ def test_fine_tuning_grows_the_mirror_model_from_a_pfnet_checkpoint_only(tmp_pat
     start_from(grown, TrainConfig(**run, init_from=checkpoint("pfnet-vanilla")))
     with pytest.raises(ConfigError, match=r"another network: model 'mlp'"):
         start_from(grown, TrainConfig(**run, init_from=checkpoint("mlp")))
+
+
+@pytest.mark.slow
+def test_the_onnx_export_passes_the_graph_check_and_completes_a_scan(tmp_path):
+    """The plane search exports without the operators the graph check refuses
+    (ConstantOfShape, Range, open slice ends), so ONNX Runtime runs it as torch does."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    from pfnet.checkpoint import save_checkpoint
+    from pfnet.cli import main
+    from pfnet.onnx_graph import check_graph
+    from pfnet.training.config import preset_config
+
+    config = preset_config("small").replace(model="pfnet-mirror", n_points=512, width=0.125)
+    torch.manual_seed(0)
+    model = build_model(config).eval()
+    checkpoint = tmp_path / "mirror.pt"
+    save_checkpoint(checkpoint, {"config": config.to_dict(), "model": model.state_dict()})
+    onnx_file = tmp_path / "mirror.onnx"
+    assert main(["export", "--checkpoint", str(checkpoint), "--out", str(onnx_file)]) == 0
+    check_graph(onnx_file)
+    scan = tmp_path / "scan.npy"
+    np.save(scan, _symmetric_cloud(5, 0.3, 0.0, n=300) * 20.0 + 7.0)
+    for runtime in ("torch", "onnx"):
+        out = tmp_path / runtime
+        argv = [
+            "complete",
+            str(scan),
+            "--checkpoint",
+            str(checkpoint if runtime == "torch" else onnx_file),
+        ]
+        assert main([*argv, "--out", str(out), "--runtime", runtime]) == 0
+    from pfnet.io import read_point_cloud
+
+    by_torch = read_point_cloud(tmp_path / "torch" / "scan_missing.ply")
+    by_onnx = read_point_cloud(tmp_path / "onnx" / "scan_missing.ply")
+    np.testing.assert_allclose(by_onnx, by_torch, atol=1e-4 * 20.0 * 2)

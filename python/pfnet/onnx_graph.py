@@ -34,6 +34,10 @@ ALLOWED_OPS = frozenset(
         "ReduceMax", "Relu", "Reshape", "Shape", "Slice", "Squeeze", "Transpose", "Unsqueeze",
         # and what other exporter versions write for the same layers
         "Constant", "Identity", "Mul", "Sub", "MatMul", "Flatten", "Gather", "Max",
+        # pfnet-mirror's plane search: element-wise, reductions, and gathers and scatters
+        # into tensors that already exist (it makes none from a shape: no ConstantOfShape)
+        "Abs", "And", "ArgMax", "Floor", "GatherND", "GreaterOrEqual", "Less", "LessOrEqual",
+        "Min", "ReduceMean", "ReduceMin", "ReduceSum", "ScatterElements", "Where",
     }
 )  # fmt: skip
 """Operators a pfnet ONNX export may use (default domain)."""

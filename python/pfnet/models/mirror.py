@@ -56,7 +56,7 @@ N_ANGLES = 24  # normal directions over half a turn: every 7.5 degrees
 OFFSETS = tuple(0.0375 * k for k in range(-8, 9))  # about the centroid, in frame units
 GRID = 32  # voxels per side of the occupancy grid over [-1, 1]^3 (0.0625 per voxel)
 SEARCH_POINTS = 128  # farthest-point samples of the partial that score each plane
-MIN_ANGLE_STEPS = 4  # the second plane's normal: at least 4 x 7.5 = 30 degrees away
+MAX_COS = math.cos(math.radians(30.0))  # the second plane's normal: 30 degrees away or more
 IN_CHANNELS = 6  # x, y, z, mirrored, empty, share
 UP_AXIS = 1
 
@@ -70,13 +70,21 @@ class CMLP(_CMLP):
         self.mlp.layers[0][0] = nn.Conv1d(IN_CHANNELS, first.out_channels, 1)
 
 
-def _occupancy(points: Tensor) -> Tensor:
-    """``(B, GRID³ + 1)`` float occupancy of ``(B, n, 3)`` points (the last cell: outside)."""
+# The ONNX export of this model must pass pfnet.onnx_graph's check, which refuses
+# ConstantOfShape and Range (a forged file allocated gigabytes with them): so no torch.zeros
+# or arange of a size known only at run time below; the constants are buffers (not in the
+# state dict) and fresh tensors are made from the input (``x * 0``).
+
+
+def _occupancy(points: Tensor, empty: Tensor) -> Tensor:
+    """``(B, GRID³ + 1)`` float occupancy of ``(B, n, 3)`` points (the last cell, where the
+    points outside the cube go, stays 0); ``empty`` is a ``(1, GRID³ + 1)`` zero row."""
     cells = _cells(points)
-    grid = torch.zeros(points.shape[0], GRID**3 + 1, dtype=points.dtype, device=points.device)
-    grid.scatter_(1, cells, torch.ones_like(cells, dtype=points.dtype))
-    grid[:, -1] = 0.0  # a point outside the cube lands on nothing
-    return grid
+    ones = (cells * 0 + 1).to(points.dtype)
+    grid = torch.scatter(empty.expand(points.shape[0], -1), 1, cells, ones)
+    inside = torch.ones_like(empty)
+    inside[:, -1] = 0.0  # a constant: the export folds it
+    return grid * inside
 
 
 def _cells(points: Tensor) -> Tensor:
@@ -84,7 +92,7 @@ def _cells(points: Tensor) -> Tensor:
     voxel = torch.floor((points + 1.0) * (GRID / 2.0)).long()
     inside = ((voxel >= 0) & (voxel < GRID)).all(dim=-1)
     flat = (voxel[..., 0] * GRID + voxel[..., 1]) * GRID + voxel[..., 2]
-    flat = torch.where(inside, flat, torch.full_like(flat, GRID**3))
+    flat = torch.where(inside, flat, GRID**3)
     return flat.reshape(points.shape[0], -1)
 
 
@@ -100,17 +108,29 @@ def _reflect(points: Tensor, normal: Tensor, offset: Tensor) -> Tensor:
     return points - 2.0 * distance * normal
 
 
-def _normals(dtype: torch.dtype, device: torch.device) -> Tensor:
-    angles = torch.arange(N_ANGLES, dtype=dtype, device=device) * (math.pi / N_ANGLES)
-    normals = torch.zeros(N_ANGLES, 3, dtype=dtype, device=device)
+def _normals() -> Tensor:
+    """``(N_ANGLES, 3)`` horizontal unit normals over half a turn."""
+    angles = torch.arange(N_ANGLES, dtype=torch.float64) * (math.pi / N_ANGLES)
+    normals = torch.zeros(N_ANGLES, 3, dtype=torch.float64)
     horizontal = [axis for axis in range(3) if axis != UP_AXIS]
     normals[:, horizontal[0]] = torch.cos(angles)
     normals[:, horizontal[1]] = torch.sin(angles)
-    return normals
+    return normals.float()
 
 
 class MirrorPlanes(nn.Module):
     """The two vertical mirror planes of each partial cloud (no parameters, no gradients)."""
+
+    normals: Tensor
+    offsets: Tensor
+    empty: Tensor
+
+    def __init__(self) -> None:
+        super().__init__()
+        # constants, not weights: outside the state dict
+        self.register_buffer("normals", _normals(), persistent=False)
+        self.register_buffer("offsets", torch.tensor(OFFSETS), persistent=False)
+        self.register_buffer("empty", torch.zeros(1, GRID**3 + 1), persistent=False)
 
     def forward(self, partial: Tensor, samples: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Find the planes.
@@ -124,14 +144,11 @@ class MirrorPlanes(nn.Module):
             the best plane and the best at least 30 degrees from it, their scores, and the
             partial's occupancy grid.
         """
-        batch = partial.shape[0]
-        grid = _occupancy(partial)
-        normals = _normals(partial.dtype, partial.device)  # (A, 3)
-        offsets = torch.tensor(OFFSETS, dtype=partial.dtype, device=partial.device)  # (D,)
+        grid = _occupancy(partial, self.empty.to(partial.dtype))
+        normals = self.normals.to(partial.dtype)  # (A, 3)
         centre = partial.mean(dim=1)  # (B, 3)
         # candidate (a, d): normal a, offset centre . normal_a + d
-        plane_offsets = (centre @ normals.T).unsqueeze(-1) + offsets  # (B, A, D)
-        n_a, n_d = plane_offsets.shape[1:]
+        plane_offsets = (centre @ normals.T).unsqueeze(-1) + self.offsets.to(partial.dtype)
         reflected = _reflect(
             samples[:, None, None],  # (B, 1, 1, s, 3)
             normals[None, :, None, None],  # (1, A, 1, 1, 3)
@@ -139,16 +156,17 @@ class MirrorPlanes(nn.Module):
         )  # (B, A, D, s, 3)
         share = _lookup(grid, reflected).mean(dim=-1)  # (B, A, D)
         best_share, best_offset = share.max(dim=-1)  # (B, A)
-        first = best_share.argmax(dim=1)  # (B,)
-        steps = torch.arange(n_a, device=partial.device)
-        apart = (steps[None, :] - first[:, None]).remainder(n_a)
-        apart = torch.minimum(apart, n_a - apart)
-        masked = torch.where(apart >= MIN_ANGLE_STEPS, best_share, torch.full_like(best_share, -1))
-        second = masked.argmax(dim=1)
-        chosen = torch.stack([first, second], dim=1)  # (B, 2)
-        rows = torch.arange(batch, device=partial.device)[:, None]
-        chosen_offsets = plane_offsets[rows, chosen, best_offset[rows, chosen]]
-        return normals[chosen], chosen_offsets, best_share[rows, chosen], grid
+        first = best_share.argmax(dim=1, keepdim=True)  # (B, 1)
+        # the planes' angle from the first's: |cos| of their normals (half a turn apart is 0)
+        cos = (normals[first] @ normals.T).squeeze(1).abs()  # (B, A)
+        masked = torch.where(cos <= MAX_COS + 1e-4, best_share, -1.0)
+        chosen = torch.cat([first, masked.argmax(dim=1, keepdim=True)], dim=1)  # (B, 2)
+        offset_index = best_offset.gather(1, chosen)  # (B, 2)
+        candidates = plane_offsets.gather(
+            1, chosen.unsqueeze(-1).expand(-1, -1, plane_offsets.shape[2])
+        )  # (B, 2, D)
+        chosen_offsets = candidates.gather(2, offset_index.unsqueeze(-1)).squeeze(-1)
+        return normals[chosen], chosen_offsets, best_share.gather(1, chosen), grid
 
 
 class MirrorEncoder(nn.Module):
@@ -196,21 +214,23 @@ class MirrorEncoder(nn.Module):
         points: Tensor, normals: Tensor, offsets: Tensor, shares: Tensor, grid: Tensor
     ) -> Tensor:
         """``(B, m, 3)`` points -> ``(B, m + ceil(m / 2), 6)``: the points, then the mirror
-        images of the even-indexed ones."""
-        batch, m = points.shape[:2]
-        source = points[:, 0::2]
+        images of the even-indexed ones (every other across the first plane, the rest across
+        the second; the CMLP's max-pool does not see their order)."""
+        # slices to the end written with the length: an open end is an int64 constant of
+        # 2**63 - 1 in the ONNX graph, which its check refuses as a shape
+        source = points[:, 0 : points.shape[1] : 2]
         half = source.shape[1]
-        plane = torch.arange(half, device=points.device).remainder(2)  # alternate the planes
-        normal = normals[:, plane]  # (B, half, 3)
-        offset = offsets[:, plane]  # (B, half)
+        images, flags = [], []
         with torch.no_grad():
-            mirrored = _reflect(source, normal, offset)
-            empty = 1.0 - _lookup(grid, mirrored)
-            share = shares[:, plane]
-        zeros = points.new_zeros(batch, m, 3)
-        original = torch.cat([points, zeros], dim=2)
-        flags = torch.stack([torch.ones_like(empty), empty, share], dim=2)
-        return torch.cat([original, torch.cat([mirrored, flags], dim=2)], dim=1)
+            for plane, part in enumerate((source[:, 0:half:2], source[:, 1:half:2])):
+                image = _reflect(part, normals[:, plane : plane + 1], offsets[:, plane : plane + 1])
+                empty = 1.0 - _lookup(grid, image)
+                share = shares[:, plane : plane + 1].expand_as(empty)
+                images.append(image)
+                flags.append(torch.stack([empty * 0 + 1, empty, share], dim=2))
+        original = torch.cat([points, points * 0], dim=2)
+        mirrored = torch.cat([torch.cat(images, dim=1), torch.cat(flags, dim=1)], dim=2)
+        return torch.cat([original, mirrored], dim=1)
 
 
 class PFNetMirror(CompletionModel):
