@@ -212,6 +212,13 @@ def test_the_dataset_scanner_test_crop_is_the_protocols(tiny_dataset: Path) -> N
         tiny_dataset, "test", missing_ratio=0.5, crop="scanner-test", seed=9
     )
     assert np.array_equal(same_seedless[1]["partial"].numpy(), partial[1])
+    # the cameras stand above the manifest's up axis (y here), or the one given
+    assert dataset._camera_up == 1
+    z_up = CompletionDataset(
+        tiny_dataset, "test", missing_ratio=0.5, crop="scanner-test", up_axis=2
+    )
+    partial_z, _ = scanner_test_crop(load_split(tiny_dataset, "test").points, 0.5, up_axis=2)
+    assert np.array_equal(z_up[0]["partial"].numpy(), partial_z[0])
 
 
 def test_the_dataset_scanner_crop_is_seeded_and_works_with_pool_augmentation_and_frames(

@@ -9,9 +9,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from pfnet.data.augment import Augmentation
+from pfnet.data.augment import Augmentation, up_axis_index
 from pfnet.data.crops import missing_count, test_protocol_viewpoints
-from pfnet.data.format import CloudSet, load_split
+from pfnet.data.format import CloudSet, load_split, read_manifest
 from pfnet.data.scan_frame import scan_angle, scan_frame, up_rotation
 from pfnet.data.scanner import scanner_sample, test_sample_rng
 from pfnet.errors import ConfigError, DataError
@@ -38,6 +38,15 @@ def validation_crop(train_crop: str) -> str:
 _MULTI_REGIONS = 2  # paper §4.4: pieces lost "in two random positions"
 
 
+def _manifest_up_axis(root: str | os.PathLike[str]) -> int:
+    """The data set's up axis from its manifest (y, the prepared sources', when it names
+    none: a mesh folder "as in the source")."""
+    try:
+        return up_axis_index(read_manifest(root))
+    except ConfigError:
+        return 1
+
+
 class CompletionDataset(Dataset):
     """Completion samples of one split: the complete cloud, the partial input, the missing part.
 
@@ -46,10 +55,10 @@ class CompletionDataset(Dataset):
     scanner's (sample ``i`` is what ``scanner_test_cameras(S)[i]`` sees, resampled to
     ``N − m``, with ``m`` of the hidden points missing: :mod:`pfnet.data.scanner`); the random
     crops are a function of ``(seed, epoch, index)`` only, so they are reproducible and
-    independent of the DataLoader's workers. Call :meth:`set_epoch` before each epoch for fresh random crops, or index with
-    ``(epoch, index)`` pairs: workers that live across epochs (``persistent_workers=True``)
-    keep the dataset object they started with, so the training loop's batch sampler sends
-    the epoch with every index.
+    independent of the DataLoader's workers. Call :meth:`set_epoch` before each epoch for
+    fresh random crops, or index with ``(epoch, index)`` pairs: workers that live across
+    epochs (``persistent_workers=True``) keep the dataset object they started with, so the
+    training loop's batch sampler sends the epoch with every index.
 
     Args:
         root: A dataset folder written by ``pfnet prepare``.
@@ -74,7 +83,8 @@ class CompletionDataset(Dataset):
         turn_test: Whether the test crop's samples are turned (in a scan frame).
 
     Each item is a dict: ``partial`` ``(N - m, 3)``, ``missing`` ``(m, 3)``, ``complete``
-    ``(N, 3)`` float32 tensors, ``category`` and ``name`` str, ``index`` int, and
+    ``(N, 3)`` (for the scanner crops, the partial and the missing points together) float32
+    tensors, ``category`` and ``name`` str, ``index`` int, and
     ``frame_radius`` (float32 scalar tensor): the radius the frame divided by (1 in the
     shape frame), by which distances are multiplied to score in the data set's units.
     """
@@ -126,7 +136,7 @@ class CompletionDataset(Dataset):
         )
         self._viewpoints = test_protocol_viewpoints(len(self.clouds))
         # the scanner's cameras stand above the data set's up axis (y when it is not known)
-        self._camera_up = 1 if up_axis is None else up_axis
+        self._camera_up = _manifest_up_axis(root) if up_axis is None else up_axis
 
     def __len__(self) -> int:
         return len(self.clouds)
