@@ -154,6 +154,10 @@ def test_bad_cameras_and_views_say_what_is_wrong() -> None:
         visible_mask(points, np.array([0.0, 0.5, 0.0]), what="sample 7")
     with pytest.raises(DataError, match="camera must be 3 finite coordinates"):
         visible_mask(points, np.array([0.0, np.nan, 3.0]))
+    with pytest.raises(DataError, match=r"sample 2: the points must be finite"):
+        visible_mask(np.where(points == points[0], np.nan, points), [0, 3, 0], what="sample 2")
+    with pytest.raises(DataError, match=r"points must have shape \(P, 3\) with P >= 4"):
+        visible_mask(points[:, :2], np.array([0.0, 3.0, 0.0]))
     with pytest.raises(DataError, match="all coincide"):
         visible_mask(np.zeros((10, 3)), np.array([0.0, 3.0, 0.0]))
     # a sphere inside a sphere: the camera sees a cap of the outer one only

@@ -17,9 +17,9 @@ in the data loader, with no new Rust kernel to keep.
 A scanner *sample* has the sizes the models take: the model predicts
 ``M = round(missing_ratio · N)`` points, so the partial is the visible points resampled to
 ``N − M`` and the missing region ``M`` of the hidden ones, spread over the hidden surface by
-farthest point sampling. On SweetHome3D's furniture a camera 2–3 radii away sees about half
-of the surface (docs/data.md), so a missing ratio of 0.5 keeps both sides' densities close
-to the complete cloud's.
+farthest point sampling. On SweetHome3D's furniture a camera 2–3 radii away sees 42 % of a
+shape's 2,048 points (docs/scanner.md), so a missing ratio of 0.5, the nearest of the
+paper's ratios, keeps both parts' densities close to the complete cloud's.
 
 Cameras (:func:`scanner_camera`) stand on a sphere of 2–3 radii around the shape, mostly
 above the horizon (elevations from −15° to 60°), as a person or a robot scans furniture.
@@ -29,13 +29,14 @@ camera drawn from ``(seed, i)`` (:func:`scanner_test_cameras`), as
 
 Both scan the sample's ``N``-point cloud (with ``fresh_points``, a new draw from the pool),
 not the whole pool: the z-buffer's resolution follows the density, and a denser cloud lets
-it see thin parts as one-sided (on SweetHome3D, a third of 8,192 points is seen against 43 %
+it see thin parts as one-sided (on SweetHome3D, a third of 8,192 points is seen against 42 %
 of 2,048), so training and test partials are scanned at the same density.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -85,11 +86,12 @@ MIN_SHARE = 0.25
 MAX_CAMERAS = 16
 """Cameras :func:`scanner_sample` tries before it gives up on a cloud."""
 
-_MAX_PIXELS = 4096  # image width cap: a cloud of near-duplicates must not ask for gigabytes
+_MAX_PIXELS = 1024  # image width cap (8 MB of depths): furniture needs tens to a few hundred
 _SPACING_QUERIES = 512  # points whose nearest neighbour estimates the surface's spacing
 _TEST_STREAM = 0x5CA9  # keeps the test cameras apart from the scan poses' streams
 
 
+@dataclass(frozen=True)
 class CameraImage:
     """The projection of a cloud into a camera's z-buffer (see :func:`camera_image`).
 
@@ -101,9 +103,11 @@ class CameraImage:
         width: Pixels on each side of the square image.
     """
 
-    def __init__(self, rows, cols, depth, pixel, width: int) -> None:
-        self.rows, self.cols, self.depth, self.pixel = rows, cols, depth, pixel
-        self.width = width
+    rows: np.ndarray
+    cols: np.ndarray
+    depth: np.ndarray
+    pixel: np.ndarray
+    width: int
 
 
 def _surface_spacing(points: np.ndarray) -> float:
@@ -152,6 +156,8 @@ def camera_image(points: np.ndarray, camera: np.ndarray, *, what: str = "the clo
     camera = np.asarray(camera, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
         raise DataError(f"{what}: points must have shape (P, 3) with P >= 4, got {points.shape}")
+    if not np.isfinite(points).all():
+        raise DataError(f"{what}: the points must be finite (NaN or inf found)")
     if camera.shape != (3,) or not np.all(np.isfinite(camera)):
         raise DataError(f"{what}: camera must be 3 finite coordinates, got {camera!r}")
     centre = points.mean(axis=0)
