@@ -114,6 +114,10 @@ def _main(argv: Sequence[str] | None) -> int:
             file=sys.stderr,
         )
         return 1
+    except BrokenPipeError:
+        if not _stdout_gone():
+            raise  # another pipe: a bug, shown
+        return 128 + 13  # what a Unix tool killed by SIGPIPE returns, quietly
     except USER_ERRORS as err:
         print(f"pfnet {args.command}: error: {_one_line(err)}", file=sys.stderr)
         return 1
@@ -128,6 +132,25 @@ def _main(argv: Sequence[str] | None) -> int:
             raise
         print(f"pfnet {args.command}: error: out of memory ({_first(err)})", file=sys.stderr)
         return 1
+
+
+def _stdout_gone() -> bool:
+    """Whether the reader of stdout went away (``pfnet models --json | head``); if so, stdout
+    now writes to the null device, so that flushing it at exit raises nothing more."""
+    import os
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        # a pipe whose reading end is closed polls as an error
+        gone = any(event & select.POLLERR for _, event in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no descriptor (a captured stream), no poll
+        return False
+    if gone:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+    return gone
 
 
 def _first(err: BaseException) -> str:
