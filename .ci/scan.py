@@ -16,7 +16,7 @@ import numpy as np
 
 
 def compare() -> None:
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     a, b = Path(sys.argv[2]), Path(sys.argv[3])
     files = sorted(p.name for p in a.glob("*.ply"))
@@ -35,7 +35,7 @@ def compare() -> None:
 def write_scans() -> None:
     from pfnet.data import SWEETHOME3D_PATH, load_split, prepare_dataset
     from pfnet.geometry import crop_by_viewpoint
-    from pfnet.io import write_ply
+    from pfnet.io.clouds import write_ply
 
     out = Path(sys.argv[1])
     real = SWEETHOME3D_PATH.is_dir()

@@ -17,9 +17,9 @@ import pytest
 
 from pfnet.data import test_protocol_crop
 from pfnet.data.format import SPLITS, CloudSet, write_dataset
-from pfnet.evaluation import evaluate_predictions, find_prediction_files
-from pfnet.io import read_point_cloud, save_npy
-from pfnet.metrics import sample_metrics
+from pfnet.evaluation.metrics import sample_metrics
+from pfnet.evaluation.scoring import evaluate_predictions, find_prediction_files
+from pfnet.io.clouds import read_point_cloud, save_npy
 
 N_SAMPLES, N_POINTS, RATIO = 3000, 2048, 0.25
 CATEGORIES = [f"cat{k:02d}" for k in range(13)]

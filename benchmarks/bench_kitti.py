@@ -7,9 +7,10 @@ synthetic set of the same sizes: car-like bodies (a box with a cabin on top, pro
 per car) sampled on their surfaces, and completions that are perturbed copies of random cars.
 
 Run: ``python benchmarks/bench_kitti.py [--completions 16] [--references 5927]``. It times
-pfnet's exact branch-and-bound search (:func:`pfnet.metrics.minimal_matching_distance`) on a
-subset of completions against the whole reference set, and once with no completion (the
-one-off cost: every car's KD-tree) to separate the cost a completion;
+pfnet's exact branch-and-bound search
+(:func:`pfnet.evaluation.metrics.minimal_matching_distance`) on a subset of completions
+against the whole reference set, and once with no completion (the one-off cost: every car's
+KD-tree) to separate the cost a completion;
 checks its answers on a few completions against the anchor (every pair, scipy ``cKDTree`` /
 pykdtree in a Python loop, as the peers' scripts do on a GPU), times the anchor per pair, and
 projects both to 2,401 × 5,927 (pfnet's costs scaled linearly with the number of cars, which
@@ -77,7 +78,7 @@ def anchor_pair(comp_tree, comp: np.ndarray, ref_tree, ref: np.ndarray) -> float
 def main() -> None:
     from scipy.spatial import cKDTree
 
-    from pfnet.metrics import minimal_matching_distance
+    from pfnet.evaluation.metrics import minimal_matching_distance
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--completions", type=int, default=16)

@@ -34,10 +34,10 @@ import pytest
 
 torch = pytest.importorskip("torch") if "pytest" in sys.modules else __import__("torch")
 
-from pfnet.losses import chamfer_distance  # noqa: E402
 from pfnet.training.batches import CompletionCollate  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 from pfnet.training.distributed import DistContext  # noqa: E402
+from pfnet.training.losses import chamfer_distance  # noqa: E402
 from pfnet.training.step import TrainingStep  # noqa: E402
 
 CHAMFER_SIZES = [(36, 512, 512), (36, 2048, 2048)]  # (B, P, G): the loss's size; a full cloud

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from pfnet.data.crops import missing_count
-from pfnet.shipped import DEFAULT_MODEL, shipped_models
+from pfnet.inference.shipped import DEFAULT_MODEL, shipped_models
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGE = ROOT / "docs" / "models.md"

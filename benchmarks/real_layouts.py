@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.cli import main
-from pfnet.protocols import SHAPENET_VIEWPOINTS
+from pfnet.evaluation.protocols import SHAPENET_VIEWPOINTS
 
 SH3D = Path("/usr/share/sweethome3d/furniture/BlendSwap-CC-0.sh3f")
 

@@ -36,8 +36,8 @@ from pfnet.data import load_split, test_protocol_crop
 from pfnet.data.scan_frame import UP_AXES, scan_normalisation, scan_pose, to_y_up
 from pfnet.data.scanner import scanner_test_crop
 from pfnet.data.symmetry import mirror_completion
-from pfnet.io import read_point_cloud
-from pfnet.metrics import sample_metrics, summarize
+from pfnet.evaluation.metrics import sample_metrics, summarize
+from pfnet.io.clouds import read_point_cloud
 
 
 def complete_through_cli(scans, out, up, checkpoint, runtime):
@@ -101,9 +101,9 @@ def shape_frame_predictions(partial, checkpoint, runtime):
     """The model given each partial in the complete shape's frame (the paper's protocol),
     resampled to the model's input size as ``complete`` does (a scanner partial need not have
     the size the model was trained on)."""
-    from pfnet.completion import network_input
-    from pfnet.inference import predict_missing
-    from pfnet.runtimes import load_generator
+    from pfnet.inference.completion import network_input
+    from pfnet.inference.predict import predict_missing
+    from pfnet.inference.runtimes import load_generator
 
     loaded = load_generator(checkpoint, runtime=runtime, device="cpu")
     n_input = int(loaded.model.n_points) - int(loaded.model.n_missing)

@@ -20,9 +20,9 @@ import tempfile
 from pathlib import Path
 
 from pfnet.data import load_split, read_manifest
-from pfnet.evaluation import evaluate_predictions
-from pfnet.inference import predict_split
-from pfnet.shipped import SUFFIX, WEIGHTS_DIR, write_shipped
+from pfnet.evaluation.scoring import evaluate_predictions
+from pfnet.inference.predict import predict_split
+from pfnet.inference.shipped import SUFFIX, WEIGHTS_DIR, write_shipped
 
 
 def _data_summary(data: Path) -> dict:
@@ -65,7 +65,7 @@ def _scan_card(path: Path) -> dict:
 
 def _card_rest(args, mean, evaluation, test, manifest) -> dict:
     """Everything of the card after its summary and scan figures."""
-    from pfnet.checkpoint import load_checkpoint
+    from pfnet.inference.checkpoint import load_checkpoint
 
     frame = getattr(load_checkpoint(args.checkpoint)[1], "frame", "shape")
     given = (

@@ -34,10 +34,10 @@ from pfnet.data import load_split, missing_count, test_protocol_crop
 from pfnet.data.crops import test_protocol_viewpoints
 from pfnet.data.format import read_manifest
 from pfnet.errors import DataError, PfnetError
-from pfnet.evaluation import SCALE
+from pfnet.evaluation.metrics import sample_metrics, summarize
+from pfnet.evaluation.scoring import SCALE
 from pfnet.geometry import crop_by_viewpoint
-from pfnet.io import atomic_path
-from pfnet.metrics import sample_metrics, summarize
+from pfnet.io.clouds import atomic_path
 
 MESH_SOURCES = ("sweethome3d", "procedural")
 

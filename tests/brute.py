@@ -93,14 +93,14 @@ def naive_fps(points: np.ndarray, n: int) -> np.ndarray:
 
 def capture_panels(monkeypatch) -> list:
     """Record the rows every gallery draws (then draw them as usual)."""
-    import pfnet.rendering
+    import pfnet.viz.rendering
 
     drawn: list = []
-    original = pfnet.rendering.render_panels
+    original = pfnet.viz.rendering.render_panels
 
     def recording(out, rows, **kwargs):
         drawn.append(rows)
         return original(out, rows, **kwargs)
 
-    monkeypatch.setattr(pfnet.rendering, "render_panels", recording)
+    monkeypatch.setattr(pfnet.viz.rendering, "render_panels", recording)
     return drawn

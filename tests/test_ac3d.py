@@ -1,4 +1,4 @@
-"""The AC3D reader (``pfnet.formats.ac3d``) on forged ``.ac``/``.acc`` files."""
+"""The AC3D reader (``pfnet.io.formats.ac3d``) on forged ``.ac``/``.acc`` files."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pfnet.errors import DataError
-from pfnet.formats.ac3d import parse_ac3d, read_ac3d
+from pfnet.io.formats.ac3d import parse_ac3d, read_ac3d
 
 HEADER = 'AC3Db\nMATERIAL "m" rgb 1 1 1 amb 1 1 1 emis 0 0 0 spec 0 0 0 shi 1 trans 0\n'
 

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from brute import capture_panels, naive_fps, nearest_distances, needs_runtime, write_pcd
 
-from pfnet.benchmark_evaluation import evaluate_benchmark
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
 from pfnet.data.benchmarks import load_partials
 from pfnet.errors import ConfigError, DataError
-from pfnet.metrics import fidelity, minimal_matching_distance, sample_metrics
-from pfnet.protocols import (
+from pfnet.evaluation.benchmarks import evaluate_benchmark
+from pfnet.evaluation.metrics import fidelity, minimal_matching_distance, sample_metrics
+from pfnet.evaluation.protocols import (
     SHAPENET_SYNSETS,
     SHAPENET_VIEWPOINTS,
     category_title,

@@ -65,7 +65,7 @@ def test_ctrl_c_while_the_commands_load_is_one_line(monkeypatch, capsys):
 )
 def test_a_bug_propagates_with_its_traceback(monkeypatch, capsys, exc):
     # A plain ValueError or TypeError is not the user's: it must not become one quiet line.
-    from pfnet import shipped
+    from pfnet.inference import shipped
 
     def broken():
         raise exc

@@ -7,16 +7,11 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
-from pfnet.completion import (  # noqa: E402
-    complete_clouds,
-    network_input,
-    normalisation,
-    output_paths,
-)
 from pfnet.errors import DataError  # noqa: E402
-from pfnet.io import read_point_cloud, save_npy, write_ply  # noqa: E402
+from pfnet.inference.checkpoint import save_checkpoint  # noqa: E402
+from pfnet.inference.completion import complete_clouds, network_input, normalisation, output_paths  # noqa: E402
+from pfnet.io.clouds import read_point_cloud, save_npy, write_ply  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 

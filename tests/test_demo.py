@@ -9,11 +9,11 @@ import pytest
 
 pytest.importorskip("torch")
 
-import pfnet.shipped  # noqa: E402
-from pfnet import demo_pipeline  # noqa: E402
-from pfnet.checkpoint import save_checkpoint  # noqa: E402
+import pfnet.inference.shipped  # noqa: E402
 from pfnet.cli import main  # noqa: E402
+from pfnet.inference.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
+from pfnet.study import demo as demo_pipeline  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 
 
@@ -24,8 +24,8 @@ def _ship_a_512_point_model(folder):
     save_checkpoint(
         checkpoint, {"config": config.to_dict(), "model": build_model(config).state_dict()}
     )
-    pfnet.shipped.write_shipped(
-        checkpoint, folder / "weights" / f"{pfnet.shipped.DEFAULT_MODEL}.safetensors"
+    pfnet.inference.shipped.write_shipped(
+        checkpoint, folder / "weights" / f"{pfnet.inference.shipped.DEFAULT_MODEL}.safetensors"
     )
 
 
@@ -33,7 +33,7 @@ def _ship_a_512_point_model(folder):
 def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(demo_pipeline, "SWEETHOME3D_FURNITURE", tmp_path / "no-furniture")
     _ship_a_512_point_model(tmp_path)
-    monkeypatch.setattr(pfnet.shipped, "WEIGHTS_DIR", tmp_path / "weights")
+    monkeypatch.setattr(pfnet.inference.shipped, "WEIGHTS_DIR", tmp_path / "weights")
     out = tmp_path / "demo"
     args = ["demo", "--out", str(out), "--count", "3", "--points", "512", "--minutes", "0.01"]
     assert main([*args, "--gallery-count", "2"]) == 0
@@ -46,7 +46,7 @@ def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys)
     # the shipped model's completions of the same test split, scored beside the run's
     assert "  shipped model " in text and "F-score@0.01" in text
     shipped = json.loads((out / "predictions-shipped" / "predictions.json").read_text())
-    assert shipped["checkpoint"] == f"shipped:{pfnet.shipped.DEFAULT_MODEL}"
+    assert shipped["checkpoint"] == f"shipped:{pfnet.inference.shipped.DEFAULT_MODEL}"
     assert json.loads((out / "metrics-shipped.json").read_text())["mean"]["pred_to_gt"] > 0
     assert (out / "data" / "manifest.json").is_file()
     assert (out / "gallery.png").read_bytes()[:4] == b"\x89PNG"
@@ -59,7 +59,7 @@ def test_demo_end_to_end_falls_back_to_procedural(tmp_path, monkeypatch, capsys)
 
     # A second run reuses the data set and trains into a fresh run folder; with no shipped
     # model it says so and skips the comparison.
-    monkeypatch.setattr(pfnet.shipped, "WEIGHTS_DIR", tmp_path / "nothing")
+    monkeypatch.setattr(pfnet.inference.shipped, "WEIGHTS_DIR", tmp_path / "nothing")
     assert main([*args[:-2], "--epochs", "1", "--procedural"]) == 0
     text = capsys.readouterr().out
     assert "reusing the data set" in text and str(out / "run-2") in text

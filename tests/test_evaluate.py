@@ -12,9 +12,9 @@ import pytest
 from pfnet.cli import main
 from pfnet.data import load_split, missing_count
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluation import evaluate_predictions, find_prediction_files
-from pfnet.gallery import pick_gallery
-from pfnet.io import save_npy, write_ply
+from pfnet.evaluation.scoring import evaluate_predictions, find_prediction_files
+from pfnet.io.clouds import save_npy, write_ply
+from pfnet.viz.gallery import pick_gallery
 
 # The authors' crop centres (DESIGN.md §3), written out here so the test does not reuse the
 # code under test.

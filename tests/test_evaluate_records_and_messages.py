@@ -11,8 +11,8 @@ import pytest
 
 from pfnet.cli import _one_line, main
 from pfnet.errors import DataError
-from pfnet.evaluation import find_prediction_files
-from pfnet.io import save_npy, write_ply
+from pfnet.evaluation.scoring import find_prediction_files
+from pfnet.io.clouds import save_npy, write_ply
 
 
 def test_two_files_for_one_sample_are_refused_naming_both(tmp_path):
@@ -93,7 +93,7 @@ def test_a_pickled_pt_is_one_line_without_a_torch_warning(tmp_path, capsys):
 
 def test_a_file_named_like_a_shipped_model_does_not_replace_it(tmp_path, monkeypatch):
     from pfnet.errors import ConfigError
-    from pfnet.shipped import DEFAULT_MODEL, WEIGHTS_DIR, resolve_checkpoint
+    from pfnet.inference.shipped import DEFAULT_MODEL, WEIGHTS_DIR, resolve_checkpoint
 
     monkeypatch.chdir(tmp_path)
     shipped = WEIGHTS_DIR / f"{DEFAULT_MODEL}.safetensors"
@@ -118,7 +118,7 @@ def test_a_file_named_like_a_shipped_model_does_not_replace_it(tmp_path, monkeyp
 )
 def test_a_model_file_with_the_wrong_suffix_is_named_as_what_it_is(tmp_path, source, name, said):
     from pfnet.errors import ConfigError
-    from pfnet.shipped import WEIGHTS_DIR, resolve_checkpoint
+    from pfnet.inference.shipped import WEIGHTS_DIR, resolve_checkpoint
 
     path = tmp_path / name
     if source == "zip":  # what torch.save writes starts as a zip archive

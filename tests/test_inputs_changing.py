@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pfnet import formats
 from pfnet.errors import DataError
-from pfnet.io import read_point_cloud, write_ply
+from pfnet.io import formats
+from pfnet.io.clouds import read_point_cloud, write_ply
 
 POINTS = np.random.default_rng(0).normal(size=(5000, 3)).astype(np.float32)
 
@@ -91,9 +91,9 @@ def test_a_truncated_input_does_not_kill_the_process(tmp_path):
     script = textwrap.dedent(
         f"""
         import os
-        from pfnet import formats
+        from pfnet.io import formats
         from pfnet.errors import DataError
-        from pfnet.io import read_point_cloud
+        from pfnet.io.clouds import read_point_cloud
         opened = formats.FileBody.__init__
         def open_then_truncate(self, fh, file):
             opened(self, fh, file)
@@ -116,7 +116,7 @@ def test_a_truncated_input_does_not_kill_the_process(tmp_path):
 
 
 def test_no_reader_maps_a_file():
-    """The mechanism itself: nothing under pfnet.formats memory-maps an input."""
+    """The mechanism itself: nothing under pfnet.io.formats memory-maps an input."""
     for path in Path(formats.__file__).parent.glob("*.py"):
         text = path.read_text(encoding="utf-8")
         assert "memmap" not in text and "mmap_mode" not in text, path.name

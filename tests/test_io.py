@@ -1,4 +1,4 @@
-"""Tests for pfnet.io: every reader against hand-written files, round trips, every bad file."""
+"""Tests for pfnet.io.clouds: every reader against hand-written files, round trips, bad files."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pfnet.errors import DataError
-from pfnet.io import atomic_path, read_point_cloud, save_npy, write_ply
+from pfnet.io.clouds import atomic_path, read_point_cloud, save_npy, write_ply
 
 
 @pytest.fixture

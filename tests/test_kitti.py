@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from brute import capture_panels, naive_fps, nearest_distances, needs_runtime, write_pcd
 
-from pfnet.benchmark_evaluation import evaluate_kitti, load_references
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
 from pfnet.data.kitti import kitti_input, load_boxes, object_pose
 from pfnet.errors import ConfigError, DataError
+from pfnet.evaluation.benchmarks import evaluate_kitti, load_references
 
 KATOR = Path("/usr/share/sweethome3d/furniture/KatorLegaz.sh3f")  # five cars
 LENGTH = 4.0  # metres, the length the cars are scaled to
@@ -131,7 +131,7 @@ def pointr_normalize(points: np.ndarray, box: np.ndarray) -> np.ndarray:
 def test_pose_normalisation_recovers_the_car_frame(kitti_tree):
     root, truth = kitti_tree
     for model, _, _, _ in CARS:
-        from pfnet.io import read_point_cloud
+        from pfnet.io.clouds import read_point_cloud
 
         points = read_point_cloud(root / "cars" / f"{model}.pcd")
         box = np.loadtxt(root / "bboxes" / f"{model}.txt")
@@ -184,7 +184,7 @@ def test_kitti_prepare_predict_evaluate(kitti_tree, references, tmp_path, capsys
         points = truth[model]
         completion = np.load(pred / "car" / f"{model}.npy")
         box = np.loadtxt(root / "bboxes" / f"{model}.txt")
-        from pfnet.io import read_point_cloud
+        from pfnet.io.clouds import read_point_cloud
 
         sensor = read_point_cloud(root / "cars" / f"{model}.pcd")
         given = pointr_normalize(sensor, box).astype(np.float32)
@@ -314,7 +314,7 @@ def test_kitti_option_errors(kitti_tree, references, tiny_dataset, tmp_path, cap
     assert main([*other, "--protocol", "kitti", "--missing-ratio", "0.5"]) == 1
     assert "the kitti protocol takes no missing ratio" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="scored by evaluate_kitti"):
-        from pfnet.benchmark_evaluation import evaluate_benchmark
+        from pfnet.evaluation.benchmarks import evaluate_benchmark
 
         evaluate_benchmark(pred, data, "kitti")
 
@@ -335,7 +335,7 @@ def every_pair_cd(comp: np.ndarray, refs: np.ndarray) -> np.ndarray:
 def one_at_a_time(comps: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pruned search's own exact value of every pair (one reference per call: nothing to
     prune), reduced to the minimum and lowest index among ties, as every pair would be."""
-    from pfnet.metrics import minimal_matching_distance
+    from pfnet.evaluation.metrics import minimal_matching_distance
 
     every = np.stack(
         [minimal_matching_distance(comps, refs[j : j + 1])[0] for j in range(len(refs))]
@@ -358,7 +358,7 @@ def boxy_cars(rng: np.random.Generator, count: int, n: int) -> np.ndarray:
 
 @pytest.mark.slow  # end to end, or a measurement: runs in CI, not the default run
 def test_mmd_search_equals_every_pair_bit_for_bit():
-    from pfnet.metrics import minimal_matching_distance
+    from pfnet.evaluation.metrics import minimal_matching_distance
 
     rng = np.random.default_rng(17)
     refs = boxy_cars(rng, 40, 600)
@@ -377,7 +377,7 @@ def test_mmd_search_equals_every_pair_bit_for_bit():
 
 
 def test_mmd_adversarial_sets():
-    from pfnet.metrics import minimal_matching_distance
+    from pfnet.evaluation.metrics import minimal_matching_distance
 
     rng = np.random.default_rng(3)
     car = boxy_cars(rng, 1, 500)[0]
@@ -407,7 +407,7 @@ def test_mmd_adversarial_sets():
 
 
 def test_mmd_takes_completions_of_different_sizes():
-    from pfnet.metrics import minimal_matching_distance
+    from pfnet.evaluation.metrics import minimal_matching_distance
 
     rng = np.random.default_rng(8)
     refs = boxy_cars(rng, 12, 400)

@@ -8,7 +8,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from pfnet import geometry  # noqa: E402
-from pfnet.losses import (  # noqa: E402
+from pfnet.models import Completion  # noqa: E402
+from pfnet.training.losses import (  # noqa: E402
     alpha_for_epoch,
     chamfer_distance,
     chamfer_loss,
@@ -18,7 +19,6 @@ from pfnet.losses import (  # noqa: E402
     joint_loss,
     nearest_neighbor_indices,
 )
-from pfnet.models import Completion  # noqa: E402
 
 
 def _naive_chamfer(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

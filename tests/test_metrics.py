@@ -1,9 +1,9 @@
-"""pfnet.metrics against direct numpy computations."""
+"""pfnet.evaluation.metrics against direct numpy computations."""
 
 import numpy as np
 import pytest
 
-from pfnet.metrics import sample_metrics, summarize
+from pfnet.evaluation.metrics import sample_metrics, summarize
 
 
 def naive_metrics(p, t, thr):

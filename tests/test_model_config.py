@@ -29,9 +29,9 @@ def _modules_after(code: str) -> list[str]:
 def test_inference_never_imports_training() -> None:
     pytest.importorskip("torch")
     loaded = _modules_after(
-        "import pfnet.checkpoint, pfnet.shipped, pfnet.inference\n"
+        "import pfnet.inference.checkpoint, pfnet.inference.shipped, pfnet.inference.predict\n"
         "from pfnet.models import CMLP, MODELS, PFNet, build_model, initialise\n"
-        "from pfnet.checkpoint import load_checkpoint\n"
+        "from pfnet.inference.checkpoint import load_checkpoint\n"
         "load_checkpoint(None)"
     )
     assert "pfnet.models.pfnet" in loaded  # the import did happen
@@ -97,7 +97,7 @@ def test_init_key_defaults_to_pytorch_for_configs_written_before_it() -> None:
 
 
 def test_the_shipped_models_config_loads_as_both_configs() -> None:
-    from pfnet.shipped import shipped_models
+    from pfnet.inference.shipped import shipped_models
 
     (shipped,) = [m for m in shipped_models() if m.name == "sh3d-small"]
     train = TrainConfig.from_dict(shipped.config)

@@ -19,15 +19,15 @@ torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
 
-from pfnet.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.data import load_split, test_protocol_crop  # noqa: E402
 from pfnet.errors import ConfigError, DataError, MissingDependency  # noqa: E402
-from pfnet.io import read_point_cloud, write_ply  # noqa: E402
+from pfnet.inference.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+from pfnet.inference.onnx_export import TOLERANCE, file_sha256  # noqa: E402
+from pfnet.inference.runtimes import OnnxGenerator, has_module, load_generator  # noqa: E402
+from pfnet.inference.shipped import DEFAULT_MODEL, WEIGHTS_DIR, read_metadata  # noqa: E402
+from pfnet.io.clouds import read_point_cloud, write_ply  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
-from pfnet.onnx_export import TOLERANCE, file_sha256  # noqa: E402
-from pfnet.runtimes import OnnxGenerator, has_module, load_generator  # noqa: E402
-from pfnet.shipped import DEFAULT_MODEL, WEIGHTS_DIR, read_metadata  # noqa: E402
 from pfnet.training.config import TrainConfig, preset_config  # noqa: E402
 
 SHIPPED_ONNX = WEIGHTS_DIR / f"{DEFAULT_MODEL}.onnx"
@@ -103,7 +103,7 @@ def test_shipped_onnx_is_the_shipped_model(tiny_dataset):
     rng = np.random.default_rng(0)
     batch = clouds[:, rng.integers(0, clouds.shape[1], n)]  # resampled to the model's 1536
     batch = np.ascontiguousarray(batch / np.abs(batch).max(), np.float32)
-    from pfnet.inference import predict_missing
+    from pfnet.inference.predict import predict_missing
 
     got = predict_missing(onnx_run.model, batch, 5, "cpu")
     want = predict_missing(torch_run.model, batch, 5, "cpu")

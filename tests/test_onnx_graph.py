@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pfnet.errors import DataError
-from pfnet.onnx_graph import check_graph
+from pfnet.inference.onnx_graph import check_graph
 
 onnx = pytest.importorskip("onnx")  # to forge the files; the check itself needs no onnx
 from onnx import TensorProto, helper  # noqa: E402

@@ -18,7 +18,7 @@ import pytest
 
 from pfnet.data.sources import meshes
 from pfnet.errors import DataError
-from pfnet.paths import shown, walk_files
+from pfnet.io.paths import shown, walk_files
 
 LATIN1 = os.fsdecode(b"caf\xe9")  # 'caf\udce9': a Latin-1 name as Python holds it
 

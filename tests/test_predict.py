@@ -9,12 +9,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.data import load_split, test_protocol_crop  # noqa: E402
-from pfnet.devices import inference_device  # noqa: E402
 from pfnet.errors import ConfigError, DataError  # noqa: E402
-from pfnet.inference import predict_split  # noqa: E402
+from pfnet.inference.checkpoint import save_checkpoint  # noqa: E402
+from pfnet.inference.devices import inference_device  # noqa: E402
+from pfnet.inference.predict import predict_split  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 
@@ -157,8 +157,8 @@ def test_two_runs_into_one_folder_never_mix(tmp_path, tiny_dataset, checkpoint, 
     import subprocess
     import sys
 
-    from pfnet.prediction_folder import check_prediction_folder, open_prediction_folder
-    from pfnet.prediction_record import run_files
+    from pfnet.evaluation.prediction_folder import check_prediction_folder, open_prediction_folder
+    from pfnet.evaluation.prediction_record import run_files
 
     path, _, _ = checkpoint
     out = tmp_path / "pred"
@@ -205,7 +205,7 @@ def test_two_runs_into_one_folder_never_mix(tmp_path, tiny_dataset, checkpoint, 
 def test_predict_gives_a_scan_frame_model_each_partial_in_its_own_frame(
     tmp_path, tiny_dataset, frame
 ):
-    from pfnet.completion import complete_clouds
+    from pfnet.inference.completion import complete_clouds
 
     n_points = load_split(tiny_dataset, "test").points.shape[1]
     generator, config = make_checkpoint(tmp_path / "scan.pt", n_points, frame=frame)

@@ -1,4 +1,4 @@
-"""Tests for pfnet.rendering: galleries and the ``pfnet render`` command."""
+"""Tests for pfnet.viz.rendering: galleries and the ``pfnet render`` command."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 
 from pfnet.cli import main
 from pfnet.errors import ConfigError, DataError
-from pfnet.io import save_npy, write_ply
-from pfnet.rendering import (
+from pfnet.io.clouds import save_npy, write_ply
+from pfnet.viz.rendering import (
     GROUND_TRUTH_COLOR,
     PARTIAL_COLOR,
     PREDICTION_COLOR,
@@ -135,7 +135,7 @@ def test_render_command_errors(tmp_path, sphere, capsys):
 
 
 def test_render_panels_draws_any_columns(tmp_path, sphere):
-    from pfnet.rendering import render_panels
+    from pfnet.viz.rendering import render_panels
 
     rows = [
         ("chair/a_long_name_0001", [("input", [(sphere, PARTIAL_COLOR)])]
@@ -183,8 +183,8 @@ def _cells(image: np.ndarray, rows: int, cols: int, panel: float = 2.2) -> dict:
 def test_render_draws_a_completed_file_in_its_own_colours_not_as_ground_truth(tmp_path, sphere):
     """`pfnet render x_completed.ply` (grey scan, yellow prediction, as `pfnet complete` writes
     it) draws those colours under "completion", not everything blue under "ground truth"."""
-    from pfnet.completion import write_completion
-    from pfnet.rendering import own_color_panel
+    from pfnet.inference.completion import write_completion
+    from pfnet.viz.rendering import own_color_panel
 
     scan, missing = sphere[sphere[:, 0] < 0.5], sphere[sphere[:, 0] >= 0.5]
     write_completion(tmp_path, tmp_path / "x.xyz", scan, missing)
@@ -195,7 +195,7 @@ def test_render_draws_a_completed_file_in_its_own_colours_not_as_ground_truth(tm
     image = _pixels(out)
     assert _has_colour(image, PARTIAL_COLOR) and _has_colour(image, PREDICTION_COLOR)
     assert not _has_colour(image, GROUND_TRUTH_COLOR)
-    from pfnet.formats.ply import read_ply_colors
+    from pfnet.io.formats.ply import read_ply_colors
 
     title, layers = own_color_panel(*(f(completed) for f in (_read, read_ply_colors)))
     assert title == "completion" and [len(p) for p, _ in layers] == [len(scan), len(missing)]
@@ -217,7 +217,7 @@ def _count(image: np.ndarray, hex_colour: str, tol: float = 0.12) -> int:
 
 
 def _read(path):
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     return read_point_cloud(path)
 
@@ -225,7 +225,7 @@ def _read(path):
 def test_render_samples_with_a_dash_keep_every_panel_under_its_header(tmp_path, sphere):
     """A row without a prediction ('-') leaves the completion's cell empty: its ground truth
     stays in the ground-truth column, under that header, as in a full row."""
-    from pfnet.rendering import column_titles
+    from pfnet.viz.rendering import column_titles
 
     partial, missing = sphere[sphere[:, 0] < 0.5], sphere[sphere[:, 0] >= 0.5]
     save_npy(tmp_path / "p.npy", partial)

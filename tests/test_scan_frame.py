@@ -118,7 +118,7 @@ def test_mirror_plane_and_completion_fill_a_missing_side():
 def test_a_bare_folder_named_like_a_runtime_is_not_that_runtime(tmp_path, monkeypatch):
     """An output folder `torch/` in the working directory made the light install take it for
     PyTorch (and fail on torch.cuda)."""
-    from pfnet.runtimes import has_module
+    from pfnet.inference.runtimes import has_module
 
     (tmp_path / "pfnet_runtime_stand_in").mkdir()
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -131,7 +131,7 @@ torch = pytest.importorskip("torch")
 
 @pytest.fixture(scope="module")
 def scan_model(tmp_path_factory):
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -205,7 +205,7 @@ def test_complete_refuses_an_unknown_up_axis_before_loading():
 
 def test_complete_command_up_z_says_model_frame_and_files(scan_model, tmp_path, capsys):
     from pfnet.cli import main
-    from pfnet.io import read_point_cloud, save_npy
+    from pfnet.io.clouds import read_point_cloud, save_npy
 
     scan = (_scan() @ to_y_up("z")).astype(np.float32)
     save_npy(tmp_path / "scan.npy", scan)
@@ -270,7 +270,7 @@ def test_aligned_frame_removes_the_heading():
 
 def test_an_aligned_model_completes_any_heading_alike(tmp_path):
     import pfnet
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -289,7 +289,7 @@ def test_an_aligned_model_completes_any_heading_alike(tmp_path):
 
 def test_complete_command_keeps_a_survey_scan_in_double(scan_model, tmp_path):
     from pfnet.cli import main
-    from pfnet.io import read_point_cloud, write_ply
+    from pfnet.io.clouds import read_point_cloud, write_ply
 
     scan = _scan() + [512_345.0, 5_412_345.0, 230.0]  # float64, UTM-like
     write_ply(tmp_path / "survey.ply", scan)

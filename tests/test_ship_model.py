@@ -11,12 +11,12 @@ pytest.importorskip("torch")
 
 from scripts import load_script  # noqa: E402
 
-from pfnet.checkpoint import save_checkpoint  # noqa: E402
 from pfnet.data import prepare_dataset, read_manifest  # noqa: E402
-from pfnet.evaluation import evaluate_predictions  # noqa: E402
-from pfnet.inference import predict_split  # noqa: E402
+from pfnet.evaluation.scoring import evaluate_predictions  # noqa: E402
+from pfnet.inference.checkpoint import save_checkpoint  # noqa: E402
+from pfnet.inference.predict import predict_split  # noqa: E402
+from pfnet.inference.shipped import read_metadata  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
-from pfnet.shipped import read_metadata  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 
 
@@ -145,11 +145,11 @@ def test_the_card_leads_with_the_scan_protocol_and_pfnet_models_shows_it(
     import argparse
     from types import SimpleNamespace
 
-    import pfnet.shipped
+    import pfnet.inference.shipped
     from pfnet.commands import models
 
     fake = SimpleNamespace(name="tiny", card=card, config={"frame": "scan"}, size_mb=1.0)
-    monkeypatch.setattr(pfnet.shipped, "shipped_models", lambda: [fake])
+    monkeypatch.setattr(pfnet.inference.shipped, "shipped_models", lambda: [fake])
     capsys.readouterr()
     assert models.run(argparse.Namespace(json=False)) == 0
     said = capsys.readouterr().out

@@ -12,19 +12,19 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-import pfnet.shipped  # noqa: E402
-from pfnet.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+import pfnet.inference.shipped  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.errors import ConfigError, DataError  # noqa: E402
-from pfnet.io import read_point_cloud, write_ply  # noqa: E402
-from pfnet.models import build_model  # noqa: E402
-from pfnet.shipped import (  # noqa: E402
+from pfnet.inference.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+from pfnet.inference.shipped import (  # noqa: E402
     DEFAULT_MODEL,
     read_metadata,
     resolve_checkpoint,
     shipped_models,
     write_shipped,
 )
+from pfnet.io.clouds import read_point_cloud, write_ply  # noqa: E402
+from pfnet.models import build_model  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402
 
 CARD = {"summary": "a test model", "test": {"data": "nothing", "cd_l2": 1.5, "f_score": 0.25}}
@@ -47,7 +47,7 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def weights_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, checkpoint: Path) -> Path:
     """A weights folder holding the test model as ``tiny`` and as the default model."""
     folder = tmp_path / "weights"
-    monkeypatch.setattr(pfnet.shipped, "WEIGHTS_DIR", folder)
+    monkeypatch.setattr(pfnet.inference.shipped, "WEIGHTS_DIR", folder)
     write_shipped(checkpoint, folder / "tiny.safetensors", card=CARD)
     write_shipped(checkpoint, folder / f"{DEFAULT_MODEL}.safetensors", card=CARD)
     return folder
@@ -84,7 +84,7 @@ def test_a_model_file_gets_a_new_card_and_keeps_its_weights(
     card = {"summary": "the same weights, measured again"}
     second = write_shipped(first, tmp_path / "second.safetensors", card=card)
     assert read_metadata(second) == (read_metadata(first)[0], card)
-    a, b = pfnet.shipped.load_weights(first), pfnet.shipped.load_weights(second)
+    a, b = pfnet.inference.shipped.load_weights(first), pfnet.inference.shipped.load_weights(second)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
@@ -94,7 +94,7 @@ def test_names_resolve_to_shipped_files_and_paths_win(weights_dir: Path, tmp_pat
     local = tmp_path / "tiny"  # a file of the same name in the working folder wins
     local.write_bytes(b"")
     assert resolve_checkpoint(str(local)) == local
-    assert pfnet.shipped.describe(resolve_checkpoint("tiny")) == "shipped:tiny"
+    assert pfnet.inference.shipped.describe(resolve_checkpoint("tiny")) == "shipped:tiny"
     assert [m.name for m in shipped_models()] == sorted(["tiny", DEFAULT_MODEL])
 
 

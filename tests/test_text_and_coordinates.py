@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from pfnet.errors import DataError
-from pfnet.formats.meshes import check_mesh_file
-from pfnet.io import read_point_cloud
+from pfnet.io.clouds import read_point_cloud
+from pfnet.io.formats.meshes import check_mesh_file
 
 
 def _read(tmp_path, text: str, name: str = "c.xyz", **kwargs) -> np.ndarray:

@@ -12,10 +12,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pfnet.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.data import prepare_dataset  # noqa: E402
 from pfnet.errors import ConfigError, DataError  # noqa: E402
+from pfnet.inference.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
 from pfnet.models import MODELS  # noqa: E402
 from pfnet.training import preset_config, train  # noqa: E402
 from pfnet.training.step import TrainingStep  # noqa: E402
@@ -255,7 +255,7 @@ def test_bf16_autocast_stays_close_to_fp32(tiny_dataset: Path, tmp_path: Path) -
 
 
 def test_chamfer_stays_float32_under_autocast() -> None:
-    from pfnet.losses import chamfer_distance
+    from pfnet.training.losses import chamfer_distance
 
     generator = torch.Generator().manual_seed(0)
     pred = torch.rand(2, 300, 3, generator=generator)
@@ -296,9 +296,9 @@ def test_save_every_and_the_files_a_run_writes(tiny_dataset: Path, tmp_path: Pat
             SaveSchedule.parse(bad)
     # Every 2 epochs: after epoch 2 last.pt holds epoch 2, at the end epoch 3.
     saved: list[tuple[str, int]] = []
-    import pfnet.checkpoint
+    import pfnet.inference.checkpoint
 
-    original = pfnet.checkpoint.save_checkpoint
+    original = pfnet.inference.checkpoint.save_checkpoint
 
     def spy(path, state):
         saved.append((Path(path).name, state["epoch"]))
@@ -306,7 +306,7 @@ def test_save_every_and_the_files_a_run_writes(tiny_dataset: Path, tmp_path: Pat
 
     config = FAST.replace(model="mlp", epochs=3, width=0.125, save_every="2")
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(pfnet.checkpoint, "save_checkpoint", spy)
+        patch.setattr(pfnet.inference.checkpoint, "save_checkpoint", spy)
         summary = train(config, tiny_dataset, tmp_path / "run", device="cpu", progress=False)
     assert [e for name, e in saved if name == "last.pt"] == [2, 3]
     assert {e for name, e in saved if name == "best.pt"} <= {1, 2, 3}

@@ -12,7 +12,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pfnet.checkpoint import load_checkpoint  # noqa: E402
+from pfnet.inference.checkpoint import load_checkpoint  # noqa: E402
 
 
 def _torchrun(*args: str) -> subprocess.CompletedProcess[str]:

@@ -16,8 +16,8 @@ from process_tree import fork_servers, wait_for
 
 torch = pytest.importorskip("torch")
 
-import pfnet.checkpoint  # noqa: E402
-from pfnet.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
+import pfnet.inference.checkpoint  # noqa: E402
+from pfnet.inference.checkpoint import load_checkpoint, read_checkpoint  # noqa: E402
 from pfnet.processes import spawn_shielded, start_helpers  # noqa: E402
 from pfnet.training import preset_config, train  # noqa: E402
 from pfnet.training.loop import Trainer  # noqa: E402
@@ -61,7 +61,7 @@ MOMENTS = {
     # during validation of epoch 1 (call 1 is the untrained model's epoch 0)
     "validation": (Trainer, "validate", 2),
     # during a checkpoint write (the first one: best.pt after epoch 1, on the writer thread)
-    "checkpoint-write": (pfnet.checkpoint, "save_checkpoint", 1),
+    "checkpoint-write": (pfnet.inference.checkpoint, "save_checkpoint", 1),
 }
 
 

@@ -1,7 +1,7 @@
 """Two runs at once, and files pfnet did not write (issue 36, classes 3 and 4).
 
 Every command that writes a folder holds an exclusive flock on it, every command that reads
-one another may rewrite a shared one (:mod:`pfnet.locks`); the other is refused naming the
+one another may rewrite a shared one (:mod:`pfnet.io.locks`); the other is refused naming the
 folder and the process. The holders here are other processes, as a second run would be.
 """
 
@@ -23,10 +23,10 @@ from pfnet.data.digests import loaded_split_digest
 from pfnet.data.format import write_dataset
 from pfnet.data.temporaries import TEMPORARY_MARK
 from pfnet.errors import DataError
-from pfnet.locks import folder_lock, holders
+from pfnet.io.locks import folder_lock, holders
 
 HOLD = (
-    "import sys, time; from pfnet.locks import folder_lock\n"
+    "import sys, time; from pfnet.io.locks import folder_lock\n"
     "with folder_lock(sys.argv[1], 'holding', shared=sys.argv[2] == 'shared'):\n"
     "    print('held', flush=True); time.sleep(120)\n"
 )
@@ -54,7 +54,7 @@ class Holder:
 def _tries(folder: Path, *, shared: bool = False) -> str:
     """What another process is told when it tries to take ``folder`` now."""
     script = (
-        "import sys; from pfnet.locks import folder_lock; from pfnet.errors import DataError\n"
+        "import sys; from pfnet.io.locks import folder_lock; from pfnet.errors import DataError\n"
         "try:\n"
         "    with folder_lock(sys.argv[1], 'trying', shared=sys.argv[2] == 'shared'):\n"
         "        print('took')\n"

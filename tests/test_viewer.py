@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from pfnet.cli import main
-from pfnet.io import save_npy, write_ply
-from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+from pfnet.io.clouds import save_npy, write_ply
+from pfnet.viz.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
 
 plotly = pytest.importorskip("plotly")
 

@@ -23,9 +23,9 @@ __all__ = ["Completion", "complete", "geometry", "load_model", "__version__"]
 
 # Imported on first use, so that `import pfnet` stays as light as the geometry core.
 _LAZY = {
-    "complete": "pfnet.completion",
-    "load_model": "pfnet.completion",
-    "Completion": "pfnet.completion",
+    "complete": "pfnet.inference.completion",
+    "load_model": "pfnet.inference.completion",
+    "Completion": "pfnet.inference.completion",
 }
 
 

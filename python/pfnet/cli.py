@@ -24,7 +24,7 @@ from collections.abc import Sequence
 
 from pfnet import errors
 from pfnet.errors import PfnetError
-from pfnet.paths import tolerant_streams
+from pfnet.io.paths import tolerant_streams
 
 # name -> module implementing HELP / add_arguments / run
 COMMANDS: dict[str, str] = {

@@ -69,8 +69,8 @@ def onnx_model(
     import onnx
     from onnx import TensorProto, helper
 
+    from pfnet.inference.onnx_export import FORMAT, VERSION
     from pfnet.models.config import ModelConfig
-    from pfnet.onnx_export import FORMAT, VERSION
 
     config = ModelConfig(n_points=n_points)
     shape = ["batch", config.n_missing, 3] if detail_shape is None else detail_shape

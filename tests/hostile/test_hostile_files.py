@@ -19,7 +19,7 @@ from forge import write_predictions
 from pfnet.cli import main
 from pfnet.data import load_split
 from pfnet.errors import DataError
-from pfnet.io import read_point_cloud, write_ply
+from pfnet.io.clouds import read_point_cloud, write_ply
 
 
 @contextlib.contextmanager
@@ -173,7 +173,7 @@ def test_a_split_larger_than_the_free_memory_is_refused_before_loading(
 
 def test_one_bad_file_does_not_stop_a_complete_batch(tmp_path: Path, capsys) -> None:
     torch = pytest.importorskip("torch")
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -200,7 +200,7 @@ def test_one_bad_file_does_not_stop_a_complete_batch(tmp_path: Path, capsys) -> 
 
 def test_damaged_checkpoints_are_one_line_errors(tmp_path: Path, capsys) -> None:
     torch = pytest.importorskip("torch")
-    from pfnet.checkpoint import FORMAT, VERSION, save_checkpoint
+    from pfnet.inference.checkpoint import FORMAT, VERSION, save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -235,14 +235,14 @@ def test_damaged_checkpoints_are_one_line_errors(tmp_path: Path, capsys) -> None
 def test_io_failures_are_one_line_errors(
     tmp_path: Path, tiny_dataset: Path, capsys, monkeypatch
 ) -> None:
-    import pfnet.reports
+    import pfnet.evaluation.reports
 
     pred = write_predictions(tmp_path / "pred", tiny_dataset)
 
     def full_disk(*_args, **_kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "m.json"))
 
-    monkeypatch.setattr(pfnet.reports, "write_json", full_disk)
+    monkeypatch.setattr(pfnet.evaluation.reports, "write_json", full_disk)
     args = ["evaluate", str(pred), "--data", str(tiny_dataset), "--json", str(tmp_path / "m.json")]
     assert main(args) == 1
     err = capsys.readouterr().err
@@ -390,7 +390,7 @@ def test_complete_and_evaluate_go_on_past_every_malformed_file(
     tmp_path: Path, tiny_dataset: Path, capsys
 ) -> None:
     pytest.importorskip("torch")
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -426,7 +426,7 @@ def test_complete_and_evaluate_go_on_past_every_malformed_file(
 
 def test_forged_model_configs_are_refused_before_building_anything(tmp_path: Path, capsys) -> None:
     pytest.importorskip("torch")
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.training.config import preset_config
 
     config = preset_config("paper").replace(n_points=65536, width=4.0, missing_ratio=0.5)

@@ -15,7 +15,7 @@ import pytest
 from pfnet.cli import main
 from pfnet.data import SWEETHOME3D_PATH, prepare_dataset
 from pfnet.errors import DataError
-from pfnet.formats.meshes import MAX_EXTRA_LINES, MAX_MESH_BYTES, MAX_MESH_LINES, check_mesh_file
+from pfnet.io.formats.meshes import MAX_EXTRA_LINES, MAX_MESH_BYTES, MAX_MESH_LINES, check_mesh_file
 
 TETRAHEDRON_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
 

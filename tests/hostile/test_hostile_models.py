@@ -12,14 +12,14 @@ import pytest
 from forge import onnx_model, resized_dataset
 
 from pfnet.cli import main
-from pfnet.io import write_ply
+from pfnet.io.clouds import write_ply
 
 
 @pytest.fixture
 def checkpoint(tmp_path: Path) -> Path:
     """A tiny untrained PF-Net for 512-point clouds (it takes 384, predicts 128)."""
     pytest.importorskip("torch")
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -58,7 +58,7 @@ def _forged_graphs(folder: Path) -> dict[str, tuple[Path, str]]:
 
     def filled(value: float, shape_input: str = "s", dtype=TensorProto.FLOAT):
         # Expand of a constant: ConstantOfShape is refused before the signature is read
-        # (pfnet.onnx_graph: no pfnet export uses it)
+        # (pfnet.inference.onnx_graph: no pfnet export uses it)
         tensor = helper.make_tensor("v", dtype, [1], [value])
         return [
             helper.make_node("Constant", [], ["value"], value=tensor),

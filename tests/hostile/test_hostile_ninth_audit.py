@@ -23,14 +23,14 @@ import pytest
 from pfnet.cli import main
 from pfnet.data import load_split
 from pfnet.errors import DataError
-from pfnet.formats import MAX_BODY_BYTES
-from pfnet.formats.meshes import (
+from pfnet.io.clouds import read_point_cloud, write_ply
+from pfnet.io.formats import MAX_BODY_BYTES
+from pfnet.io.formats.meshes import (
     MAX_GLTF_DEPTH,
     MAX_GLTF_INSTANCED,
     MAX_GLTF_NODES,
     check_mesh_file,
 )
-from pfnet.io import read_point_cloud, write_ply
 
 TETRAHEDRON_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
 
@@ -280,7 +280,7 @@ def test_a_complete_batch_names_each_hostile_file_and_completes_the_good_one(
     tmp_path: Path, capsys
 ) -> None:
     torch = pytest.importorskip("torch")
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 

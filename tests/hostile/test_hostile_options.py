@@ -11,7 +11,7 @@ import pytest
 from forge import write_predictions
 
 from pfnet.cli import main
-from pfnet.io import write_ply
+from pfnet.io.clouds import write_ply
 
 
 def test_evaluate_follows_the_recorded_protocol_and_refuses_another(

@@ -14,7 +14,7 @@ from pfnet.cli import main
 from pfnet.data import load_split
 from pfnet.data.format import CloudSet
 from pfnet.errors import DataError
-from pfnet.io import read_point_cloud, write_ply
+from pfnet.io.clouds import read_point_cloud, write_ply
 
 
 def _tree(folder: Path) -> dict[str, bytes]:

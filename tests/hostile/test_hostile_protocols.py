@@ -14,9 +14,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pfnet.checkpoint import read_checkpoint  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.errors import DataError  # noqa: E402
+from pfnet.inference.checkpoint import read_checkpoint  # noqa: E402
 
 
 class Foreign:
@@ -89,8 +89,8 @@ def test_prepare_lists_at_most_a_thousand_skipped_files(tmp_path, capsys):
 def test_a_benchmark_protocol_refuses_a_data_set_it_does_not_define(
     tiny_dataset, tmp_path, protocol, capsys
 ):
-    from pfnet.benchmark_evaluation import evaluate_benchmark
-    from pfnet.protocols import check_protocol_data, get_protocol
+    from pfnet.evaluation.benchmarks import evaluate_benchmark
+    from pfnet.evaluation.protocols import check_protocol_data, get_protocol
 
     want = f"the {protocol} protocol needs a data set prepared from its benchmark, but"
     with pytest.raises(DataError, match=want) as err:
@@ -117,7 +117,7 @@ def test_predict_refuses_a_data_set_as_its_out_folder(tiny_dataset, tmp_path, ca
 
 
 def _small_checkpoint(path, n_points: int):
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -350,8 +350,8 @@ def test_an_interrupted_overwrite_is_finished_by_the_next(
 def test_a_file_put_in_a_folder_being_replaced_after_its_check_is_kept(tiny_dataset, tmp_path):
     """Between the check (before the model runs) and the removal a file may appear: only the
     listed files go, the folder stays with the file, and the old record with them."""
-    from pfnet.prediction_folder import check_prediction_folder, open_prediction_folder
-    from pfnet.prediction_record import run_files
+    from pfnet.evaluation.prediction_folder import check_prediction_folder, open_prediction_folder
+    from pfnet.evaluation.prediction_record import run_files
 
     out, args = _predict_args(tiny_dataset, tmp_path)
     assert main([*args, "--split", "test"]) == 0
@@ -379,7 +379,7 @@ def test_a_run_too_large_to_list_its_files_is_not_overwritten(
 ):
     """A record stays within MAX_RECORD_BYTES (its readers' bound): a run whose list of files
     would not fit records none, and --overwrite refuses its folder as an older record's."""
-    from pfnet import prediction_record
+    from pfnet.evaluation import prediction_record
 
     out, args = _predict_args(tiny_dataset, tmp_path)
     assert main([*args, "--split", "test"]) == 0

@@ -20,10 +20,10 @@ import pytest
 
 from pfnet import _core
 from pfnet.errors import DataError, GeometryError
-from pfnet.formats import MAX_CLOUD_POINTS
-from pfnet.formats.pcd import MAX_PCD_UNPACKED, MAX_PCD_VALUES
-from pfnet.formats.ply import MAX_WALKED_LISTS
-from pfnet.io import read_point_cloud
+from pfnet.io.clouds import read_point_cloud
+from pfnet.io.formats import MAX_CLOUD_POINTS
+from pfnet.io.formats.pcd import MAX_PCD_UNPACKED, MAX_PCD_VALUES
+from pfnet.io.formats.ply import MAX_WALKED_LISTS
 
 
 @contextlib.contextmanager
@@ -271,7 +271,7 @@ def test_ply_list_rows_cost_their_lists_not_their_scalars(tmp_path: Path) -> Non
 def test_text_clouds_count_blank_and_comment_lines(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str, filler: str
 ) -> None:
-    monkeypatch.setattr("pfnet.formats.lines.MAX_ASCII_LINES", 1000)
+    monkeypatch.setattr("pfnet.io.formats.lines.MAX_ASCII_LINES", 1000)
     path = tmp_path / name
     path.write_text("1 2 3\n" * 10 + filler * 1000 + "4 5 6\n")
     with pytest.raises(DataError, match=rf"{name}: more than 1000 lines before the end"):

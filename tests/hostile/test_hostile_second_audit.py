@@ -13,8 +13,8 @@ import pytest
 from forge import write_predictions
 
 from pfnet.cli import main
-from pfnet.io import read_point_cloud, write_ply
-from pfnet.prediction_record import MAX_RECORD_BYTES
+from pfnet.evaluation.prediction_record import MAX_RECORD_BYTES
+from pfnet.io.clouds import read_point_cloud, write_ply
 
 
 def _tree(folder: Path) -> dict[str, bytes]:
@@ -24,7 +24,7 @@ def _tree(folder: Path) -> dict[str, bytes]:
 @pytest.fixture
 def checkpoint(tmp_path: Path) -> Path:
     pytest.importorskip("torch")
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -348,7 +348,7 @@ def _npy_bytes(array: np.ndarray) -> bytes:
 
 def test_render_draws_huge_clouds_thinned_and_ascii_ply_lines_are_bounded(tmp_path: Path) -> None:
     from pfnet.errors import DataError
-    from pfnet.rendering import MAX_DRAWN, RenderSample, render_gallery
+    from pfnet.viz.rendering import MAX_DRAWN, RenderSample, render_gallery
 
     big = np.random.default_rng(0).normal(size=(MAX_DRAWN * 20, 3)).astype(np.float32)
     path = render_gallery(tmp_path / "big.png", [RenderSample("big", big)], views=1)

@@ -16,17 +16,17 @@ import numpy as np
 import pytest
 from brute import write_pcd
 
-from pfnet.benchmark_evaluation import evaluate_benchmark
 from pfnet.cli import main
 from pfnet.data import load_split
 from pfnet.data.benchmarks import load_partials, prepare_benchmark
 from pfnet.data.kitti import kitti_input
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluation import MAX_SCORED_POINTS
-from pfnet.formats import MAX_BODY_BYTES
-from pfnet.io import read_point_cloud
-from pfnet.prediction_record import recorded_protocol
-from pfnet.protocols import shapenet_crop
+from pfnet.evaluation.benchmarks import evaluate_benchmark
+from pfnet.evaluation.prediction_record import recorded_protocol
+from pfnet.evaluation.protocols import shapenet_crop
+from pfnet.evaluation.scoring import MAX_SCORED_POINTS
+from pfnet.io.clouds import read_point_cloud
+from pfnet.io.formats import MAX_BODY_BYTES
 
 # corners 0 and 3 span the car's length (4 along x), PoinTr's order
 BOX = np.array(
@@ -139,7 +139,7 @@ def test_kitti_input_and_shapenet_crop_refuse_nan_points_and_a_bad_view():
 
 def test_pcn_prepare_refuses_degenerate_shapes_and_predict_skips_them(tmp_path, capsys):
     torch = pytest.importorskip("torch")
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
@@ -245,7 +245,7 @@ def test_npy_header_lengths_beyond_the_file_are_refused_before_reading(tmp_path,
     import struct
 
     from pfnet.errors import DataError
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     forged = tmp_path / "forged.npy"
     size = "<H" if version == b"\x01\x00" else "<I"

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from pfnet.errors import DataError
-from pfnet.formats.lines import MAX_LINE_BYTES
-from pfnet.io import read_point_cloud
+from pfnet.io.clouds import read_point_cloud
+from pfnet.io.formats.lines import MAX_LINE_BYTES
 
 PLY_HEADER = (
     "ply\nformat ascii 1.0\nelement vertex {n}\n"
@@ -130,7 +130,7 @@ def test_reports_replace_no_device_or_pipe_nor_write_through_links(
 
 
 def test_binary_bodies_are_mapped_not_read_and_headers_bounded(tmp_path: Path) -> None:
-    from pfnet.io import write_ply
+    from pfnet.io.clouds import write_ply
 
     path = tmp_path / "padded.ply"
     write_ply(path, np.arange(30, dtype=np.float32).reshape(10, 3))
@@ -214,7 +214,7 @@ def test_a_checkpoint_with_compressed_members_is_refused_before_loading(tmp_path
     import zipfile
 
     torch = pytest.importorskip("torch")
-    from pfnet.checkpoint import read_checkpoint
+    from pfnet.inference.checkpoint import read_checkpoint
 
     path = tmp_path / "c.pt"
     torch.save({"format": "x", "junk": torch.zeros(10)}, path)
@@ -235,8 +235,8 @@ def test_an_interrupted_predict_leaves_a_record_evaluate_refuses(
     pytest.importorskip("torch")
     from forge import write_predictions
 
-    from pfnet import io as pfnet_io
     from pfnet.cli import main
+    from pfnet.io import clouds as pfnet_io
 
     out = tmp_path / "pred"
     base = ["predict", "--data", str(tiny_dataset), "--out", str(out), "--device", "cpu"]
@@ -265,8 +265,8 @@ def test_an_interrupted_predict_leaves_a_record_evaluate_refuses(
 def _tiny_checkpoint(tmp_path: Path, data: Path) -> Path:
     import torch
 
-    from pfnet.checkpoint import save_checkpoint
     from pfnet.data import load_split
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training import preset_config
 
@@ -291,7 +291,7 @@ def test_names_are_bounded_in_bytes_not_only_characters() -> None:
 
 def test_f_score_thresholds_must_be_distances() -> None:
     from pfnet.errors import ConfigError
-    from pfnet.metrics import sample_metrics
+    from pfnet.evaluation.metrics import sample_metrics
 
     clouds = np.random.default_rng(0).random((2, 50, 3)).astype(np.float32)
     for bad in (-1.0, float("nan"), 0.0, float("inf")):

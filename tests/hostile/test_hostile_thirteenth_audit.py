@@ -93,8 +93,8 @@ def test_npy_headers_are_parsed_one_thread_at_a_time(tmp_path: Path, monkeypatch
     predictions on its thread pool: the header reads hold one lock."""
     from numpy.lib import format as npy_format
 
-    from pfnet.formats import npy
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
+    from pfnet.io.formats import npy
 
     held = []
     original = npy_format.read_array_header_1_0

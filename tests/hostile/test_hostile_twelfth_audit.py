@@ -82,7 +82,7 @@ def test_reproduce_gallery_count_is_bounded(tmp_path: Path, count: str, capsys) 
 
 
 def test_an_f_score_threshold_beyond_float64_is_refused() -> None:
-    from pfnet.metrics import sample_metrics
+    from pfnet.evaluation.metrics import sample_metrics
 
     cloud = np.zeros((1, 4, 3), np.float32)
     with pytest.raises(ConfigError, match="f_threshold must be a positive finite distance"):
@@ -189,8 +189,8 @@ def test_a_split_with_a_non_finite_cloud_is_named_when_loaded(
 def test_a_checkpoint_whose_config_builds_no_network_is_named(tmp_path: Path) -> None:
     """Audit 12 note N6: an empty config said "n_points is not set", not which file."""
     pytest.importorskip("torch")
-    from pfnet.checkpoint import load_checkpoint, save_checkpoint
     from pfnet.errors import DataError
+    from pfnet.inference.checkpoint import load_checkpoint, save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 

@@ -1,6 +1,6 @@
 """``pfnet complete``: complete your own partial point clouds with a trained model.
 
-What is done to each input and which files are written: :mod:`pfnet.completion`.
+What is done to each input and which files are written: :mod:`pfnet.inference.completion`.
 """
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import sys
 from pathlib import Path
 
 from pfnet.data.scan_frame import UP_AXES
-from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
-from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
-from pfnet.shipped import CHECKPOINT_HELP
+from pfnet.inference.devices import DEVICE_HELP
+from pfnet.inference.runtimes import RUNTIME_HELP, RUNTIMES
+from pfnet.inference.shipped import CHECKPOINT_HELP
 
 HELP = "Complete your own partial point clouds (PLY/XYZ/PTS/TXT/NPY/PCD) with a trained model."
 
@@ -54,8 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
-    from pfnet.completion import check_outputs, complete_files
-    from pfnet.runtimes import load_generator
+    from pfnet.inference.completion import check_outputs, complete_files
+    from pfnet.inference.runtimes import load_generator
 
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")

@@ -1,6 +1,6 @@
 """``pfnet demo``: the whole pipeline on real data in a few minutes on a CPU.
 
-What it does and where it writes: :mod:`pfnet.demo_pipeline`.
+What it does and where it writes: :mod:`pfnet.study.demo`.
 """
 
 from __future__ import annotations
@@ -59,8 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet demo``."""
-    from pfnet.demo_pipeline import MAX_MINUTES, run_demo
-    from pfnet.rendering import MAX_ROWS
+    from pfnet.study.demo import MAX_MINUTES, run_demo
+    from pfnet.viz.rendering import MAX_ROWS
 
     if not (math.isfinite(args.minutes) and 0 < args.minutes <= MAX_MINUTES):
         raise ConfigError(f"--minutes must be positive and at most a week, got {args.minutes}")
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_summary(result) -> None:
     """Where everything is, and what to run next."""
-    from pfnet.evaluation import SCALE
+    from pfnet.evaluation.scoring import SCALE
 
     mean, shipped = result.mean, result.shipped_mean
     print(f"\ndone in {result.minutes:.1f} min. Everything is in {result.out}:")

@@ -1,7 +1,7 @@
 """``pfnet evaluate``: score any method's prediction folder against a data set.
 
 The scoring (file layout, regions, metrics, the protocol ``PRED/predictions.json`` records)
-is :mod:`pfnet.evaluation`'s; this module holds the command: its options, the checks of its
+is :mod:`pfnet.evaluation.scoring`'s; this module holds the command: its options, the checks of its
 output paths and of the recorded protocol against the options, and what it prints.
 """
 
@@ -12,10 +12,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from pfnet.benchmark_evaluation import evaluate_benchmark, evaluate_kitti
 from pfnet.data.format import read_manifest
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluation import (
+from pfnet.evaluation.benchmarks import evaluate_benchmark, evaluate_kitti
+from pfnet.evaluation.prediction_record import (
+    recorded_data_problem,
+    recorded_protocol,
+    recorded_protocol_name,
+)
+from pfnet.evaluation.protocols import Protocol
+from pfnet.evaluation.scoring import (
     FAR,
     MAX_WORKERS,
     REGIONS,
@@ -24,12 +30,6 @@ from pfnet.evaluation import (
     evaluate_predictions,
     render_evaluation_gallery,
 )
-from pfnet.prediction_record import (
-    recorded_data_problem,
-    recorded_protocol,
-    recorded_protocol_name,
-)
-from pfnet.protocols import Protocol
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
 PROTOCOL_NAMES = ("pfnet", "pcn", "shapenet55", "shapenet34", "kitti")
@@ -107,21 +107,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet evaluate``; exit 2 if files were missing/unreadable (unless allowed).
 
-    The prediction folder and the data set are held (shared locks, :mod:`pfnet.locks`)
+    The prediction folder and the data set are held (shared locks, :mod:`pfnet.io.locks`)
     while they are read: a ``predict`` or ``prepare`` rewriting them meanwhile is refused,
     never scored as a mix of two runs.
     """
-    from pfnet.locks import reading
+    from pfnet.io.locks import reading
 
     with reading(args.pred, "scoring"), reading(args.data, "reading"):
         return _run(args)
 
 
 def _run(args: argparse.Namespace) -> int:
-    from pfnet.gallery import check_gallery_options
-    from pfnet.io import check_report_path
-    from pfnet.metrics import summarize
-    from pfnet.reports import format_table, write_csv
+    from pfnet.evaluation.metrics import summarize
+    from pfnet.evaluation.reports import format_table, write_csv
+    from pfnet.io.clouds import check_report_path
+    from pfnet.viz.gallery import check_gallery_options
 
     args.gallery_count = check_gallery_options(args.gallery, args.gallery_count)
     given = [Path(p).resolve() for p in (args.json, args.csv, args.gallery) if p is not None]
@@ -182,7 +182,7 @@ def _run(args: argparse.Namespace) -> int:
 def _scoring_protocol(args: argparse.Namespace) -> str:
     """``--protocol``, else the one PRED/predictions.json records, else ``pfnet``; a
     ``--protocol`` that differs from the record is refused."""
-    from pfnet.protocols import get_protocol
+    from pfnet.evaluation.protocols import get_protocol
 
     try:
         recorded = recorded_protocol_name(args.pred)
@@ -203,9 +203,9 @@ def _scoring_protocol(args: argparse.Namespace) -> str:
 def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     """``pfnet evaluate --protocol pcn|shapenet55|kitti``: whole completions scored as PoinTr
     does."""
-    from pfnet.io import check_report_path
-    from pfnet.protocols import get_protocol
-    from pfnet.reports import format_benchmark_table, write_csv
+    from pfnet.evaluation.protocols import get_protocol
+    from pfnet.evaluation.reports import format_benchmark_table, write_csv
+    from pfnet.io.clouds import check_report_path
 
     chosen = get_protocol(protocol)
     for flag, value in (
@@ -284,7 +284,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
 
 def _run_kitti(args: argparse.Namespace) -> int:
     """``pfnet evaluate --protocol kitti``: Fidelity and MMD of the completions of the cars."""
-    from pfnet.reports import format_kitti_table, write_kitti_csv
+    from pfnet.evaluation.reports import format_kitti_table, write_kitti_csv
 
     evaluation = evaluate_kitti(
         args.pred,
@@ -316,7 +316,7 @@ def _benchmark_gallery(
     """``--gallery`` of a benchmark protocol: scored completions, spread over the categories."""
     if args.gallery is None:
         return
-    from pfnet.gallery import render_benchmark_gallery
+    from pfnet.viz.gallery import render_benchmark_gallery
 
     keys = [f"{c}/{n}" for c, n in zip(evaluation.categories, evaluation.names, strict=True)]
     nearest = evaluation.labels.get("nearest_reference") if evaluation.labels else None
@@ -398,7 +398,7 @@ def _check_recorded_data(args: argparse.Namespace) -> None:
 
 def _write_reports(args: argparse.Namespace, evaluation: Any, write_csv: Any) -> None:
     """``--json`` (the evaluation's report) and ``--csv`` (written by ``write_csv``)."""
-    from pfnet.reports import write_json
+    from pfnet.evaluation.reports import write_json
 
     for path in (args.json, args.csv):  # as galleries do: the scoring is not lost to a folder
         if path is not None:

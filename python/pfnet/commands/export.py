@@ -1,4 +1,4 @@
-"""``pfnet export``: write a trained generator as an ONNX file (:mod:`pfnet.onnx_export`).
+"""``pfnet export``: write a trained generator as an ONNX file (:mod:`pfnet.inference.onnx_export`).
 
 The file runs on ONNX Runtime without PyTorch: ``pfnet complete --checkpoint model.onnx``
 (or ``predict``). Exporting needs PyTorch, ``onnx`` and ``onnxscript``.
@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 
 from pfnet.errors import ConfigError
-from pfnet.shipped import CHECKPOINT_HELP
+from pfnet.inference.shipped import CHECKPOINT_HELP
 
 HELP = "Export a trained generator to ONNX, to complete scans with ONNX Runtime (no PyTorch)."
 EXPORT_EXTRA = "the [export] extra of pfnet-completion"
@@ -30,9 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet export``."""
     from pfnet.errors import MissingDependency
-    from pfnet.io import refuse_input_overwrite
-    from pfnet.runtimes import has_module
-    from pfnet.shipped import resolve_checkpoint
+    from pfnet.inference.runtimes import has_module
+    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.io.clouds import refuse_input_overwrite
 
     if args.out.suffix.lower() != ".onnx":
         raise ConfigError(f"--out must be a .onnx file, got {args.out}")
@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         raise MissingDependency(
             f"export needs {', '.join(missing)}: pip install {' '.join(missing)} ({EXPORT_EXTRA})"
         )
-    from pfnet.onnx_export import TOLERANCE, export_onnx
+    from pfnet.inference.onnx_export import TOLERANCE, export_onnx
 
     result = export_onnx(source, args.out, check=not args.no_check)
     meta = result["metadata"]

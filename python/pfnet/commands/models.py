@@ -15,7 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet models``."""
-    from pfnet.shipped import DEFAULT_MODEL, shipped_models
+    from pfnet.inference.shipped import DEFAULT_MODEL, shipped_models
 
     models = shipped_models()
     if args.json:

@@ -16,13 +16,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from pfnet.benchmark_inference import predict_benchmark
-from pfnet.devices import DEVICE_HELP
 from pfnet.errors import ConfigError
-from pfnet.inference import predict_split
-from pfnet.protocols import Protocol, get_protocol
-from pfnet.runtimes import RUNTIME_HELP, RUNTIMES
-from pfnet.shipped import CHECKPOINT_HELP
+from pfnet.evaluation.protocols import Protocol, get_protocol
+from pfnet.inference.benchmarks import predict_benchmark
+from pfnet.inference.devices import DEVICE_HELP
+from pfnet.inference.predict import predict_split
+from pfnet.inference.runtimes import RUNTIME_HELP, RUNTIMES
+from pfnet.inference.shipped import CHECKPOINT_HELP
 
 HELP = "Predict the missing region of every sample of a data set split (test protocol)."
 
@@ -83,8 +83,8 @@ def run(args: argparse.Namespace) -> int:
     if (args.out / "last.pt").is_file() or (args.out / "best.pt").is_file():
         raise ConfigError(f"--out {args.out} is a training run; name another folder")
     _check_gallery(args)
-    from pfnet.locks import reading
-    from pfnet.prediction_folder import release_folders
+    from pfnet.evaluation.prediction_folder import release_folders
+    from pfnet.io.locks import reading
 
     # the data set is held while it is read: a prepare --overwrite meanwhile is refused
     try:
@@ -114,7 +114,7 @@ def _run(args: argparse.Namespace) -> int:
         f"{args.out}/<category>/<name>.npy ({info['split']} split, {ratio:.0%} missing)"
     )
     if args.gallery is not None:
-        from pfnet.gallery import render_prediction_gallery
+        from pfnet.viz.gallery import render_prediction_gallery
 
         path = render_prediction_gallery(
             args.gallery,
@@ -155,8 +155,8 @@ def _run_benchmark(args: argparse.Namespace) -> int:
     name = info["protocol"]["name"]
     more = " --references CARS" if name == "kitti" else ""
     if args.gallery is not None:
-        from pfnet.evaluation import find_prediction_files
-        from pfnet.gallery import render_benchmark_gallery
+        from pfnet.evaluation.scoring import find_prediction_files
+        from pfnet.viz.gallery import render_benchmark_gallery
 
         path = render_benchmark_gallery(
             args.gallery,
@@ -183,14 +183,14 @@ def _run_benchmark(args: argparse.Namespace) -> int:
 
 def _check_gallery(args: argparse.Namespace) -> None:
     """Check ``--gallery`` before predicting: never over the data or the checkpoint."""
-    from pfnet.gallery import check_gallery_options
+    from pfnet.viz.gallery import check_gallery_options
 
     args.gallery_count = check_gallery_options(args.gallery, args.gallery_count)
     if args.gallery is None:
         return
     from pfnet.data.format import split_categories
-    from pfnet.io import check_report_path
-    from pfnet.shipped import resolve_checkpoint
+    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.io.clouds import check_report_path
 
     inputs = [args.data, resolve_checkpoint(args.checkpoint)]
     categories = split_categories(args.data, args.split)  # the folders to come

@@ -1,4 +1,4 @@
-"""``pfnet render``: draw point cloud files into a PNG (see :mod:`pfnet.rendering`)."""
+"""``pfnet render``: draw point cloud files into a PNG (see :mod:`pfnet.viz.rendering`)."""
 
 from __future__ import annotations
 
@@ -56,8 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet render``."""
-    from pfnet.io import read_point_cloud, refuse_input_overwrite
-    from pfnet.rendering import MAX_POINT_SIZE, MAX_VIEWS, RenderSample, render_gallery
+    from pfnet.io.clouds import read_point_cloud, refuse_input_overwrite
+    from pfnet.viz.rendering import MAX_POINT_SIZE, MAX_VIEWS, RenderSample, render_gallery
 
     if not args.files and not args.sample:
         raise ConfigError("give at least one FILE or --sample PARTIAL PRED GT")
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         points = read_point_cloud(name)
         colors = None
         if args.role is None and Path(name).suffix.lower() == ".ply":
-            from pfnet.formats.ply import read_ply_colors
+            from pfnet.io.formats.ply import read_ply_colors
 
             colors = read_ply_colors(Path(name))
         if colors is not None:

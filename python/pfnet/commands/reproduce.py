@@ -37,7 +37,6 @@ import sys
 from pathlib import Path
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.rendering import MAX_ROWS
 from pfnet.study.orchestrate import reproduce, rewrite_report
 from pfnet.study.record import read_results
 from pfnet.study.report import checked_report, publish, publish_readme, read_readme
@@ -51,6 +50,7 @@ from pfnet.study.runs import (
     STUDY_SEEDS,
 )
 from pfnet.training.config import CHAMFER_KINDS, MAX_STEPS
+from pfnet.viz.rendering import MAX_ROWS
 
 # Trainings side by side on one device: a GPU's host has a few cores per run to give.
 MAX_JOBS = 64
@@ -197,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         from pfnet.data import SWEETHOME3D_PATH
         from pfnet.data.sources import pick_source
-        from pfnet.devices import inference_device
+        from pfnet.inference.devices import inference_device
 
         device = inference_device(args.device)
         preset = args.preset if args.preset != "auto" else ("small" if device == "cpu" else "paper")

@@ -89,7 +89,7 @@ def member_header(
 ) -> tuple[tuple[int, ...], np.dtype]:
     """The declared shape and dtype of one ``.npy`` member, checked against the bytes the
     member can hold (its stored size, and :data:`MAX_POINTS_COMPRESSION` for coordinates)."""
-    from pfnet.formats.npy import check_npy_header
+    from pfnet.io.formats.npy import check_npy_header
 
     # The directory's sizes are data too: bound them by the archive's real size
     # (deflate expands at most about 1032 times).

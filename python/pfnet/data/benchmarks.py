@@ -254,7 +254,7 @@ def _shapenet_entries(root: Path, fmt: str) -> tuple[list[_Entry], list[tuple[st
 
 def _read(entry: _Entry, fmt: str) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     from pfnet.data.sampling import normalize, unit_ball
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     expected = PCN_POINTS if fmt == "pcn" else SHAPENET_POINTS
     try:

@@ -454,7 +454,7 @@ def write_dataset(
     Returns:
         ``out`` as a Path.
     """
-    from pfnet.locks import folder_lock
+    from pfnet.io.locks import folder_lock
 
     path = check_output(out, overwrite)
     if set(splits) != set(SPLITS):

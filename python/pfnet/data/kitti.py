@@ -197,7 +197,7 @@ def _kitti_entries(root: Path) -> tuple[list[_Car], list[tuple[str, str]]]:
 
 def _read_car(car: _Car) -> tuple[np.ndarray | None, np.ndarray | None, str, str]:
     """``(points, box, "", "")`` or ``(None, None, path, reason)``."""
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     try:
         points = read_point_cloud(car.cloud)

@@ -35,7 +35,7 @@ from pfnet.data.sources import FORMATS, OPEN_SHAPE_FORMATS, Scan, ShapeItem, loa
 from pfnet.data.sources.merge import merge_scans, several_manifest, several_sources
 from pfnet.data.splits import assign_splits
 from pfnet.errors import ConfigError, DataError
-from pfnet.io import refuse_overlap
+from pfnet.io.clouds import refuse_overlap
 from pfnet.processes import usable_cpus, worker_pool
 
 __all__ = ["PrepareReport", "assign_splits", "prepare_dataset", "process_item"]
@@ -83,7 +83,7 @@ class PrepareReport:
 
     def summary(self) -> str:
         """A short human-readable table: shapes per category and split, skipped and dropped."""
-        from pfnet.protocols import category_title
+        from pfnet.evaluation.protocols import category_title
 
         categories = sorted({c for counts in self.counts.values() for c in counts})
         titles = {c: category_title(c) for c in categories} | {"total": "total"}

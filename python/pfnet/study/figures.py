@@ -23,7 +23,7 @@ def plot_curves(path: Path, results: dict[str, Any]) -> Path:
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from pfnet.io import atomic_path
+    from pfnet.io.clouds import atomic_path
 
     fig = Figure(figsize=(10, 3.6), dpi=90)
     axes = fig.subplots(1, 2)
@@ -80,9 +80,14 @@ def render_comparison(
 ) -> Path | None:
     """The same test shapes (25 % missing) completed by each model, ground truth last."""
     from pfnet.data import load_split, test_protocol_crop
-    from pfnet.gallery import pick_gallery
-    from pfnet.io import read_point_cloud
-    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
+    from pfnet.io.clouds import read_point_cloud
+    from pfnet.viz.gallery import pick_gallery
+    from pfnet.viz.rendering import (
+        GROUND_TRUTH_COLOR,
+        PARTIAL_COLOR,
+        PREDICTION_COLOR,
+        render_panels,
+    )
 
     # One seed's predictions (the first): an average of seeds is no one model's output.
     seed = results["seeds"][0]

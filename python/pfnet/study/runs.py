@@ -236,7 +236,7 @@ def train_run(
                 f"{run_dir} holds a run with another configuration; delete it or choose "
                 "another results folder"
             )
-        from pfnet.checkpoint import read_checkpoint
+        from pfnet.inference.checkpoint import read_checkpoint
         from pfnet.training.resume import data_identity
 
         state = read_checkpoint(run_dir / "last.pt", "cpu")
@@ -266,11 +266,11 @@ def train_run(
 
 def evaluate_run(run: StudyRun, data_dir: Path, run_dir: Path, device: str) -> dict[str, Any]:
     """Predict the test split with ``best.pt`` and score both regions; the run's record."""
-    from pfnet.checkpoint import load_checkpoint
     from pfnet.data import missing_count
-    from pfnet.evaluation import evaluate_predictions
-    from pfnet.inference import predict_split
-    from pfnet.reports import write_json
+    from pfnet.evaluation.reports import write_json
+    from pfnet.evaluation.scoring import evaluate_predictions
+    from pfnet.inference.checkpoint import load_checkpoint
+    from pfnet.inference.predict import predict_split
 
     checkpoint = run_dir / "best.pt"
     pred_dir = run_dir / "predictions"

@@ -5,7 +5,7 @@ authors' ``Train_PFNet.py``); the others take a generator step on the completion
 After every epoch the generator (its weight average, with ``ema``) is validated on the
 ``val`` split with the deterministic test protocol (the scanner's for a run trained on
 scanner partials, :func:`pfnet.data.dataset.validation_crop`) and the same metric functions as
-``pfnet evaluate`` (:mod:`pfnet.metrics`).
+``pfnet evaluate`` (:mod:`pfnet.evaluation.metrics`).
 
 Files of a run folder (written by rank 0 only under DDP, each replaced atomically):
 ``log.jsonl`` after every epoch; ``best.pt`` (what inference needs) whenever validation
@@ -30,11 +30,11 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 from tqdm import tqdm
 
-from pfnet.checkpoint import read_checkpoint
 from pfnet.data.augment import augmentation_for, scan_up_axis
 from pfnet.errors import ConfigError, DataError
-from pfnet.io import atomic_path, refuse_overlap
-from pfnet.locks import writing
+from pfnet.inference.checkpoint import read_checkpoint
+from pfnet.io.clouds import atomic_path, refuse_overlap
+from pfnet.io.locks import writing
 from pfnet.processes import ignore_stop_signals, start_helpers
 from pfnet.training import distributed
 from pfnet.training.batches import CompletionCollate, EpochBatches

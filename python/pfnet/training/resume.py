@@ -102,7 +102,7 @@ def check_resumable(state: dict[str, Any], path: Path) -> None:
 
 def start_from(generator: nn.Module, config: TrainConfig) -> None:
     """Copy the weights ``config.init_from`` names into ``generator`` (fine-tuning)."""
-    from pfnet.checkpoint import load_checkpoint
+    from pfnet.inference.checkpoint import load_checkpoint
 
     source, trained = load_checkpoint(config.init_from)
     # a model that grows from another (pfnet-mirror from pfnet-vanilla) takes its weights

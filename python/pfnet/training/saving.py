@@ -48,7 +48,7 @@ class CheckpointWriter:
     """
 
     def __init__(self) -> None:
-        from pfnet.checkpoint import save_checkpoint
+        from pfnet.inference.checkpoint import save_checkpoint
 
         self._save = save_checkpoint
         self._pending: dict[Path, dict[str, Any]] = {}

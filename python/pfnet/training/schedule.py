@@ -13,8 +13,8 @@ import math
 
 import torch
 
-from pfnet.losses import alpha_for_epoch
 from pfnet.training.config import TrainConfig
+from pfnet.training.losses import alpha_for_epoch
 
 FEW_STEPS_AT_FULL_LR = 2000  # below this, a run is told that its learning rate decays early
 

@@ -10,16 +10,16 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
 from pfnet.errors import ConfigError
-from pfnet.losses import (
+from pfnet.models import Discriminator, build_model, initialise
+from pfnet.training.average import WeightAverage
+from pfnet.training.config import TrainConfig
+from pfnet.training.distributed import DistContext
+from pfnet.training.losses import (
     completion_loss,
     discriminator_loss,
     generator_adversarial_loss,
     joint_loss,
 )
-from pfnet.models import Discriminator, build_model, initialise
-from pfnet.training.average import WeightAverage
-from pfnet.training.config import TrainConfig
-from pfnet.training.distributed import DistContext
 from pfnet.training.schedule import make_scheduler
 
 
@@ -98,8 +98,8 @@ class TrainingStep:
         """The precision context of the networks' forward passes (``config.precision``).
 
         bf16 runs them under ``torch.autocast``; the Chamfer terms switch autocast off and
-        compute in float32 (:func:`pfnet.losses.chamfer_distance`), and the BCE losses are on
-        autocast's float32 list.
+        compute in float32 (:func:`pfnet.training.losses.chamfer_distance`), and the BCE losses
+        are on autocast's float32 list.
         """
         if self.config.precision == "bf16":
             return torch.autocast(self.device.type, dtype=torch.bfloat16)

@@ -1,6 +1,6 @@
 """Validation during training: the val split cropped with the deterministic test protocol,
-scored by the metric functions ``pfnet evaluate`` uses (:mod:`pfnet.metrics`), each rank's
-share gathered under DDP so that every rank gets the same figures."""
+scored by the metric functions ``pfnet evaluate`` uses (:mod:`pfnet.evaluation.metrics`),
+each rank's share gathered under DDP so that every rank gets the same figures."""
 
 from __future__ import annotations
 
@@ -43,9 +43,9 @@ def score_generator(
 ) -> dict[str, float]:
     """The mean over categories of each metric of ``network``'s completions of ``batches``,
     over every rank's batches, keyed ``<prefix><metric>`` (the squared-distance terms ×1000,
-    as :func:`pfnet.metrics.summarize` gives them); empty when no rank has a sample. The
+    as :func:`pfnet.evaluation.metrics.summarize` gives them); empty when no rank has a sample. The
     network is put in eval mode for the pass and restored after."""
-    from pfnet.metrics import sample_metrics, summarize
+    from pfnet.evaluation.metrics import sample_metrics, summarize
 
     was_training = network.training
     network.eval()

@@ -176,7 +176,7 @@ def load_item(item: ShapeItem, seed: int) -> Geometry:
 
         return load_mesh_file(item.path)
     if item.kind == "cloud-file":
-        from pfnet.io import read_point_cloud
+        from pfnet.io.clouds import read_point_cloud
 
         return Geometry(read_point_cloud(item.path))
     if item.kind == "sh3f":

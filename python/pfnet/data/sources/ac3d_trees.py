@@ -3,7 +3,7 @@
 Each of :mod:`~pfnet.data.sources.flightgear`, :mod:`~pfnet.data.sources.torcs` and
 :mod:`~pfnet.data.sources.crrcsim` walks its tree, decides per file a category or a reason to
 leave it out, and hands the list to :func:`make_scan`. Shapes are read with
-:func:`pfnet.formats.ac3d.read_ac3d` in the worker processes (item kind ``"ac3d"``).
+:func:`pfnet.io.formats.ac3d.read_ac3d` in the worker processes (item kind ``"ac3d"``).
 
 Up axis: the three programs model in AC3D's own frame, y up, and rotate on loading (TORCS'
 ``grloadac.cpp`` swaps y and z as it reads; crrcsim and FlightGear go through plib/OSG). The
@@ -114,7 +114,7 @@ def load_ac3d_item(path: str, rotation: tuple[float, ...] | None) -> Geometry:
     Raises:
         DataError: The file is malformed, or has no surface (lines only).
     """
-    from pfnet.formats.ac3d import read_ac3d
+    from pfnet.io.formats.ac3d import read_ac3d
 
     mesh = read_ac3d(path)
     if len(mesh.faces) == 0:

@@ -1,7 +1,7 @@
 """Mesh folders: ``ROOT/<category>/<any name>.<suffix>``, read with trimesh.
 
 Meshes (``.obj .off .ply .stl .glb .gltf``, and AC3D ``.ac .acc`` read by
-:mod:`pfnet.formats.ac3d`) are sampled on their surface; point clouds
+:mod:`pfnet.io.formats.ac3d`) are sampled on their surface; point clouds
 (``.xyz .pts .npy .pcd``, and ``.ply`` files without faces) are resampled to the point count.
 Files may sit in sub-folders of a category folder; other suffixes (``.mtl``, textures,
 notes) are ignored. Hidden files and folders (starting with ``.``) are ignored.
@@ -13,8 +13,8 @@ from pathlib import Path
 
 from pfnet.data.sources import Geometry, Scan, ShapeItem, safe_name, unique_names
 from pfnet.errors import DataError
-from pfnet.formats.meshes import check_mesh_file
-from pfnet.paths import shown, walk_files
+from pfnet.io.formats.meshes import check_mesh_file
+from pfnet.io.paths import shown, walk_files
 
 __all__ = ["CLOUD_SUFFIXES", "MESH_SUFFIXES", "load_mesh_file", "looks_like", "scan"]
 
@@ -81,9 +81,9 @@ def scan(root: Path) -> Scan:
 def load_mesh_file(path: str) -> Geometry:
     """Read a mesh with trimesh (scenes are flattened with their transforms).
 
-    The file is first checked against the bounds of :mod:`pfnet.formats.meshes` (size, lines,
+    The file is first checked against the bounds of :mod:`pfnet.io.formats.meshes` (size, lines,
     declared counts), so that trimesh's time and memory follow the geometry. A ``.ply``
-    without faces is read as a point cloud with :func:`pfnet.io.read_point_cloud`.
+    without faces is read as a point cloud with :func:`pfnet.io.clouds.read_point_cloud`.
 
     Args:
         path: The file.
@@ -122,7 +122,7 @@ def load_mesh_file(path: str) -> Geometry:
         mesh = trimesh.load(path, force="mesh", process=False, **options)
     faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     if suffix == ".ply" and len(faces) == 0:
-        from pfnet.io import read_point_cloud
+        from pfnet.io.clouds import read_point_cloud
 
         return Geometry(read_point_cloud(path))
     return Geometry(np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3), faces)

@@ -5,7 +5,7 @@ the full-detail model ``<car>.acc`` and lower levels of detail ``<car>-lod1.acc`
 full-detail file is read (a car folder without one is reported as skipped); the level-of-detail
 files, the ``wheels`` (separate wheel meshes) and the ``tracks`` (whole circuits, not objects)
 are left out and counted. ``.acc`` is AC3D with TORCS' own additions (triangle strips,
-normals, four texture layers), read by :mod:`pfnet.formats.ac3d`; the files are y-up (see
+normals, four texture layers), read by :mod:`pfnet.io.formats.ac3d`; the files are y-up (see
 :mod:`pfnet.data.sources.ac3d_trees`). Licence: Free Art License for the cars
 (``/usr/share/doc/torcs-data/copyright``).
 """

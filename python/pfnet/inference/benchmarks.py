@@ -1,6 +1,6 @@
 """The field's benchmarks predicted with a PF-Net model: whole completions of PCN's given
 partial scans, of ShapeNet-55/34's crops from 8 viewpoints, and of KITTI's cars, for ``pfnet
-evaluate --protocol`` (:mod:`pfnet.benchmark_evaluation`). ``pfnet predict --protocol``
+evaluate --protocol`` (:mod:`pfnet.evaluation.benchmarks`). ``pfnet predict --protocol``
 is the command around :func:`predict_benchmark`.
 """
 
@@ -12,10 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.inference import predict_missing
-from pfnet.prediction_folder import check_prediction_folder, open_prediction_folder, write_record
-from pfnet.prediction_record import run_files
-from pfnet.protocols import check_protocol_data, get_protocol
+from pfnet.evaluation.prediction_folder import (
+    check_prediction_folder,
+    open_prediction_folder,
+    write_record,
+)
+from pfnet.evaluation.prediction_record import run_files
+from pfnet.evaluation.protocols import check_protocol_data, get_protocol
+from pfnet.inference.predict import predict_missing
 
 # Skipped shapes named in predictions.json.
 MAX_SKIPPED_LISTED = 100
@@ -43,8 +47,8 @@ def predict_benchmark(
       cyclic repetition), and the predicted missing region is mapped back. The completion
       is the scan followed by the prediction: ``PRED/<category>/<name>.npy``.
     * ``shapenet55``: the input is PoinTr's 2,048-point crop from each of the 8 viewpoints
-      (:func:`pfnet.protocols.shapenet_crop`), already in the data set's unit ball, reduced
-      to the model's partial size by IFPS; the completion is the 2,048 input points followed
+      (:func:`pfnet.evaluation.protocols.shapenet_crop`), already in the data set's unit ball,
+      reduced to the model's partial size by IFPS; the completion is the 2,048 input points followed
       by the prediction: ``PRED/<category>/<name>_view<v>.npy``.
 
     Returns:
@@ -60,12 +64,12 @@ def predict_benchmark(
     written for it, its message is in the record's ``skipped`` (the first
     :data:`MAX_SKIPPED_LISTED`) and ``n_skipped``.
     """
-    from pfnet.completion import input_frame, network_input
     from pfnet.data import load_split
-    from pfnet.io import refuse_overlap, save_npy
-    from pfnet.protocols import get_protocol, shapenet_crop
-    from pfnet.runtimes import load_generator
-    from pfnet.shipped import resolve_checkpoint
+    from pfnet.evaluation.protocols import get_protocol, shapenet_crop
+    from pfnet.inference.completion import input_frame, network_input
+    from pfnet.inference.runtimes import load_generator
+    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.io.clouds import refuse_overlap, save_npy
 
     chosen = get_protocol(protocol)
     if chosen.prediction != "complete":
@@ -226,13 +230,13 @@ def predict_kitti(
             prediction folder of another run without ``overwrite``
             (:func:`check_prediction_folder`).
     """
-    from pfnet.completion import network_input
     from pfnet.data import load_split
     from pfnet.data.benchmarks import load_partials
     from pfnet.data.kitti import KITTI_INPUT_POINTS, kitti_input, load_boxes
-    from pfnet.io import refuse_overlap, save_npy
-    from pfnet.runtimes import load_generator
-    from pfnet.shipped import resolve_checkpoint
+    from pfnet.inference.completion import network_input
+    from pfnet.inference.runtimes import load_generator
+    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.io.clouds import refuse_overlap, save_npy
 
     if batch_size < 1:
         raise ConfigError(f"batch size must be at least 1, got {batch_size}")

@@ -7,7 +7,7 @@ nothing in proportion to the file, what would make trimesh's cost run away:
 
 - every mesh file is at most :data:`MAX_MESH_BYTES`;
 - text files (OBJ, OFF, ASCII PLY and STL) have at most :data:`MAX_MESH_LINES` lines of at
-  most :data:`~pfnet.formats.lines.MAX_LINE_BYTES` each;
+  most :data:`~pfnet.io.formats.lines.MAX_LINE_BYTES` each;
 - a PLY's declared element counts match its body: an ASCII one has one line a row and at
   most :data:`MAX_EXTRA_LINES` more, a binary one at least the bytes its rows need;
 - a binary STL's triangle count matches its size (otherwise it must be ASCII STL);
@@ -34,9 +34,9 @@ from urllib.parse import unquote
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import read_header
-from pfnet.formats.lines import MAX_LINE_BYTES
-from pfnet.formats.ply import parse_header
+from pfnet.io.formats import read_header
+from pfnet.io.formats.lines import MAX_LINE_BYTES
+from pfnet.io.formats.ply import parse_header
 
 __all__ = [
     "MAX_EXTRA_LINES",

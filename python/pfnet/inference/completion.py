@@ -2,7 +2,7 @@
 Python, ``pfnet complete`` from the shell (the work behind both).
 
 For each partial cloud (an array, or a ``.ply .xyz .pts .txt .npy .pcd`` file, see
-:mod:`pfnet.io`):
+:mod:`pfnet.io.clouds`):
 
 1. Turn it to the data sets' y-up frame if its up axis is z (``up="z"``,
    :func:`pfnet.data.scan_frame.to_y_up`).
@@ -21,7 +21,7 @@ For each partial cloud (an array, or a ``.ply .xyz .pts .txt .npy .pcd`` file, s
    grey, followed by the predicted points, yellow).
 
 Input points are never moved or dropped: the completed cloud starts with exactly the
-coordinates given (or that :func:`pfnet.io.read_point_cloud` returned, float64 kept where the
+coordinates given (or that :func:`pfnet.io.clouds.read_point_cloud` returned, float64 kept where the
 file holds float64 or text: the PLY outputs are then written in double).
 """
 
@@ -37,7 +37,7 @@ import numpy as np
 
 from pfnet.data.sampling import Normalisation, unit_ball
 from pfnet.errors import ConfigError, DataError
-from pfnet.rendering import PARTIAL_COLOR, PREDICTION_COLOR, rgb
+from pfnet.viz.rendering import PARTIAL_COLOR, PREDICTION_COLOR, rgb
 
 # The PLY outputs carry render's colours: the partial input grey, the prediction yellow.
 PARTIAL_RGB = rgb(PARTIAL_COLOR)
@@ -106,7 +106,7 @@ def complete_clouds(
 
     Args:
         model: A completion model in eval mode, with ``n_points`` and ``n_missing`` (or an
-            :class:`pfnet.runtimes.OnnxGenerator`).
+            :class:`pfnet.inference.runtimes.OnnxGenerator`).
         clouds: ``(N_i, 3)`` float partial clouds in any coordinates, any ``N_i``.
         up: The clouds' up axis, ``y`` or ``z`` (:data:`pfnet.data.scan_frame.UP_AXES`).
         frame: The model's frame (its config's ``frame``): ``aligned`` turns each cloud to
@@ -122,10 +122,10 @@ def complete_clouds(
 
     Raises:
         DataError: The model's output is not finite points of the expected shape
-            (:func:`pfnet.inference.check_detail`).
+            (:func:`pfnet.inference.predict.check_detail`).
     """
     from pfnet.data.scan_frame import to_y_up
-    from pfnet.inference import predict_missing
+    from pfnet.inference.predict import predict_missing
 
     turn = to_y_up(up)
     n_input = int(model.n_points) - int(model.n_missing)
@@ -179,7 +179,7 @@ def load_model(
     model: str | os.PathLike[str] | None = None, *, runtime: str = "auto", device: str = "auto"
 ) -> Any:
     """Load a completion model once and keep it for later calls (a
-    :class:`pfnet.runtimes.LoadedGenerator`).
+    :class:`pfnet.inference.runtimes.LoadedGenerator`).
 
     Args:
         model: A shipped model's name (see ``pfnet models``), a model file, a ``best.pt``,
@@ -190,8 +190,8 @@ def load_model(
     Raises:
         ConfigError, DataError, MissingDependency: As ``pfnet complete``'s ``--checkpoint``.
     """
-    from pfnet.runtimes import load_generator
-    from pfnet.shipped import resolve_checkpoint
+    from pfnet.inference.runtimes import load_generator
+    from pfnet.inference.shipped import resolve_checkpoint
 
     path = resolve_checkpoint(model)
     key = (str(path.resolve()), runtime, device)
@@ -235,7 +235,7 @@ def complete(
         ConfigError: An unknown ``up``, runtime or device.
     """
     from pfnet.data.scan_frame import to_y_up
-    from pfnet.runtimes import LoadedGenerator
+    from pfnet.inference.runtimes import LoadedGenerator
 
     to_y_up(up)  # ConfigError for a bad axis before a model is loaded
     cloud = check_points(points)
@@ -280,7 +280,7 @@ def output_paths(out_dir: Path, source: Path) -> tuple[Path, Path]:
 
 def write_completion(out_dir: Path, source: Path, cloud: np.ndarray, missing: np.ndarray) -> None:
     """Write both PLY files of one input (see the module docstring)."""
-    from pfnet.io import write_ply
+    from pfnet.io.clouds import write_ply
 
     missing_path, completed_path = output_paths(out_dir, source)
     yellow = np.tile(np.array(PREDICTION_RGB, np.uint8), (len(missing), 1))
@@ -303,7 +303,7 @@ def check_outputs(inputs: list[Path], out_dir: Path, *, overwrite: bool = False)
             output would replace an input, or a file pfnet did not write (without
             ``overwrite``), naming it.
     """
-    from pfnet.io import refuse_input_overwrite
+    from pfnet.io.clouds import refuse_input_overwrite
 
     stems: dict[str, Path] = {}
     for path in inputs:
@@ -332,7 +332,7 @@ def check_outputs(inputs: list[Path], out_dir: Path, *, overwrite: bool = False)
 
 
 def written_by_pfnet(path: Path) -> bool:
-    """Whether ``path`` is a PLY file as :func:`pfnet.io.write_ply` writes it (its header's
+    """Whether ``path`` is a PLY file as :func:`pfnet.io.clouds.write_ply` writes it (its header's
     ``comment written by pfnet``), not a link: one that a later run may replace."""
     if path.is_symlink() or not path.is_file():
         return False
@@ -370,12 +370,12 @@ def complete_files(
 
     Raises:
         ConfigError: If ``batch_size < 1``.
-        DataError: The model's output is refused (:func:`pfnet.inference.check_detail`);
+        DataError: The model's output is refused (:func:`pfnet.inference.predict.check_detail`);
             the batch it was for is not written.
     """
     if batch_size < 1:
         raise ConfigError(f"batch size must be at least 1, got {batch_size}")
-    from pfnet.locks import folder_lock
+    from pfnet.io.locks import folder_lock
 
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -398,7 +398,7 @@ def _complete_batches(model, inputs, out_dir, pose, batch_size, device, on_skip,
     """:func:`complete_files` without the folder's creation and clean-up."""
     from tqdm import tqdm
 
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     failed: list[str] = []
     done: list[Path] = []

@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import (
+from pfnet.io.formats import (
     check_body_span,
     check_point_count,
     float32_columns,
     map_rest,
     read_header,
 )
-from pfnet.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
+from pfnet.io.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
 
 # Rows of PLY elements with list properties have variable sizes and are walked one by one in
 # Python, reading each list's length (about half a microsecond each; scalars between lists are

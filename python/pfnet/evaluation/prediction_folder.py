@@ -3,7 +3,7 @@
 
 A folder of the same run (data set, split, protocol) is predicted again file by file; one of
 another run is refused unless ``overwrite``, which removes exactly the files its record lists
-(:mod:`pfnet.prediction_record`). From :func:`open_prediction_folder` to
+(:mod:`pfnet.evaluation.prediction_record`). From :func:`open_prediction_folder` to
 :func:`write_record` the folder is locked (flock), and its record says the run is not
 complete, which ``pfnet evaluate`` refuses.
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from pfnet.errors import DataError
-from pfnet.prediction_record import (
+from pfnet.evaluation.prediction_record import (
     PREDICTION_TMP,
     RECORD,
     RECORD_TMP,
@@ -38,7 +38,7 @@ def check_prediction_folder(
     for the pfnet protocol). A folder of the same run is predicted again as it is, file by
     file; one of another run would mix two runs' files under the new record. With
     ``overwrite`` its old predictions are removed by :func:`open_prediction_folder`: exactly
-    the files its record lists (:func:`pfnet.prediction_record.run_files`), and their
+    the files its record lists (:func:`pfnet.evaluation.prediction_record.run_files`), and their
     category folders, and only when the folder holds nothing else (interrupted writes of
     those files aside).
 
@@ -141,8 +141,9 @@ def open_prediction_folder(
     replaced: Sequence[Path] = (),
 ) -> None:
     """Make ``out`` and the category folders of ``files``
-    (:func:`~pfnet.prediction_record.run_files`), with a ``predictions.json`` that lists them
-    and says the run is not complete (``evaluate`` refuses it until the last file is written).
+    (:func:`~pfnet.evaluation.prediction_record.run_files`), with a ``predictions.json`` that
+    lists them and says the run is not complete (``evaluate`` refuses it until the last file
+    is written).
 
     The files and then the folders ``replaced`` (another run's, :func:`check_prediction_folder`)
     are removed first, then the record is written: an interrupted run never leaves another
@@ -205,8 +206,9 @@ def open_prediction_folder(
 
 def _remove_interrupted_writes(out: Path, categories: list[str]) -> None:
     """Remove the temporary files of writes a killed run left (``.name.<12 hex>.tmp.npy``,
-    ``.predictions.<12 hex>.tmp.json``, as :func:`pfnet.io.atomic_path` names them): the folder
-    is locked, so no run is writing them now, and a re-run leaves no hidden files behind."""
+    ``.predictions.<12 hex>.tmp.json``, as :func:`pfnet.io.clouds.atomic_path` names them):
+    the folder is locked, so no run is writing them now, and a re-run leaves no hidden files
+    behind."""
     folders = [(out, RECORD_TMP)] + [(out / c, PREDICTION_TMP) for c in categories]
     for folder, pattern in folders:
         if not _plain_folder(folder):
@@ -234,8 +236,8 @@ def _record_stamp(out: Path) -> tuple[int, int] | None:
 
 def _lock(out: Path) -> None:
     """Take the prediction folder ``out`` for this run, or refuse if another run (a predict
-    writing it, an evaluate reading it) has it, naming that process (:mod:`pfnet.locks`)."""
-    from pfnet.locks import take
+    writing it, an evaluate reading it) has it, naming that process (:mod:`pfnet.io.locks`)."""
+    from pfnet.io.locks import take
 
     key = out.resolve()
     _unlock(out)  # a run of this process that failed half-way
@@ -274,11 +276,11 @@ def write_record(
 
     It names the checkpoint, data set, split (and its file's digest), the category folders,
     the protocol and the model; ``extra`` keys (``skipped``...) come after the sample count,
-    and last the files the run wrote (:func:`~pfnet.prediction_record.run_files`; which
+    and last the files the run wrote (:func:`~pfnet.evaluation.prediction_record.run_files`; which
     ``--overwrite`` may remove).
     """
     from pfnet.data.digests import loaded_split_digest
-    from pfnet.shipped import describe
+    from pfnet.inference.shipped import describe
 
     info = {
         "complete": True,

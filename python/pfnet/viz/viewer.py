@@ -29,7 +29,7 @@ PANEL_PIXELS = 420
 
 def _layer_names() -> dict[str, str]:
     """Legend entry of each of the paper's colours."""
-    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+    from pfnet.viz.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
 
     return {
         PARTIAL_COLOR: "partial input",
@@ -70,9 +70,9 @@ def write_viewer(
         MissingDependency: plotly is not installed.
     """
     from pfnet.errors import MissingDependency
-    from pfnet.io import atomic_path, output_path
-    from pfnet.rendering import column_titles as columns_of
-    from pfnet.runtimes import has_module
+    from pfnet.inference.runtimes import has_module
+    from pfnet.io.clouds import atomic_path, output_path
+    from pfnet.viz.rendering import column_titles as columns_of
 
     if not has_module("plotly"):
         raise MissingDependency(f"the HTML viewer needs plotly, not installed: {VIEWER_EXTRA}")

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats import FileBody, check_body_span, check_point_count, check_table
+from pfnet.io.formats import FileBody, check_body_span, check_point_count, check_table
 
 # What numpy's header reader raises on hostile bytes: besides ValueError and EOFError, its
 # fallback for Python-2 headers tokenizes the text (tokenize.TokenError, SyntaxError on an

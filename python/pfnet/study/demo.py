@@ -118,7 +118,7 @@ def shipped_comparison(
     data_dir: Path, points: int, say: Callable[[str], None] = _quiet
 ) -> Path | None:
     """The default shipped model's file if it completes clouds of this data set's size."""
-    from pfnet.shipped import DEFAULT_MODEL, SUFFIX, WEIGHTS_DIR, read_metadata
+    from pfnet.inference.shipped import DEFAULT_MODEL, SUFFIX, WEIGHTS_DIR, read_metadata
 
     path = WEIGHTS_DIR / f"{DEFAULT_MODEL}{SUFFIX}"
     if not path.is_file():
@@ -177,12 +177,12 @@ def run_demo(
     if epochs is not None and epochs < 1:
         raise ConfigError(f"epochs must be at least 1, got {epochs}")
     from pfnet.data import prepare_dataset, read_manifest
-    from pfnet.devices import inference_device
-    from pfnet.evaluation import evaluate_predictions, render_evaluation_gallery
-    from pfnet.inference import predict_split
-    from pfnet.io import other_kind
-    from pfnet.reports import format_table, write_json
-    from pfnet.shipped import describe
+    from pfnet.evaluation.reports import format_table, write_json
+    from pfnet.evaluation.scoring import evaluate_predictions, render_evaluation_gallery
+    from pfnet.inference.devices import inference_device
+    from pfnet.inference.predict import predict_split
+    from pfnet.inference.shipped import describe
+    from pfnet.io.clouds import other_kind
     from pfnet.training import train
     from pfnet.training.config import preset_config
 

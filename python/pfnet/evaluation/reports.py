@@ -7,12 +7,12 @@ import csv
 import json
 from pathlib import Path
 
-from pfnet.evaluation import SCALE, Evaluation
+from pfnet.evaluation.scoring import SCALE, Evaluation
 
 
 def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
     """The paper-like table: per category Pred→GT / GT→Pred ×1000, n, CD-L2, CD-L1, F-score."""
-    from pfnet.metrics import summarize
+    from pfnet.evaluation.metrics import summarize
 
     summary = summary or summarize(evaluation.per_sample, evaluation.categories, scale=float(SCALE))
     header = (
@@ -36,10 +36,10 @@ def format_table(evaluation: Evaluation, summary: dict | None = None) -> str:
 
 
 def format_benchmark_table(report: dict) -> str:
-    """A benchmark protocol's table (:func:`pfnet.benchmark_evaluation.evaluate_benchmark`):
+    """A benchmark protocol's table (:func:`pfnet.evaluation.benchmarks.evaluate_benchmark`):
     per category CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 and the F-score, then the unweighted
     mean; ShapeNet synset ids are shown with their names."""
-    from pfnet.protocols import category_title
+    from pfnet.evaluation.protocols import category_title
 
     header = (
         f"{'category':<21} {'n':>6} {'CD-L1':>9} {'CD-L2':>9} {'Pred→GT':>9} "
@@ -62,7 +62,7 @@ def format_benchmark_table(report: dict) -> str:
 
 
 def format_kitti_table(report: dict) -> str:
-    """The ``kitti`` protocol's table (:func:`pfnet.benchmark_evaluation.evaluate_kitti`): per
+    """The ``kitti`` protocol's table (:func:`pfnet.evaluation.benchmarks.evaluate_kitti`): per
     category Fidelity and MMD ×1000, then the unweighted mean."""
     header = f"{'category':<16} {'n':>6} {'Fidelity':>9} {'MMD':>9}"
     lines = [header, "-" * len(header)]
@@ -78,7 +78,7 @@ def format_kitti_table(report: dict) -> str:
 def write_kitti_csv(path: Path, evaluation: Evaluation) -> None:
     """Per-car scores of the ``kitti`` protocol: category, name, Fidelity and MMD ×1000, and
     the reference car nearest the completion (``<split>/<name>`` in the reference set)."""
-    from pfnet.io import atomic_path
+    from pfnet.io.clouds import atomic_path
 
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="", encoding="utf-8") as fh:
@@ -94,7 +94,7 @@ def write_kitti_csv(path: Path, evaluation: Evaluation) -> None:
 
 def write_csv(path: Path, evaluation: Evaluation) -> None:
     """Per-sample scores: category, name and the metrics (×1000 except the F-score)."""
-    from pfnet.io import atomic_path
+    from pfnet.io.clouds import atomic_path
 
     keys = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")  # every one ×1000 here
     with atomic_path(path) as tmp:
@@ -111,7 +111,7 @@ def write_csv(path: Path, evaluation: Evaluation) -> None:
 
 def write_json(path: Path, report: dict) -> None:
     """Write the ``--json`` report atomically."""
-    from pfnet.io import atomic_path
+    from pfnet.io.clouds import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")

@@ -8,14 +8,14 @@ import numpy as np
 
 from pfnet import _core
 from pfnet.errors import DataError, GeometryError
-from pfnet.formats import (
+from pfnet.io.formats import (
     check_body_span,
     check_point_count,
     float32_columns,
     map_rest,
     read_header,
 )
-from pfnet.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
+from pfnet.io.formats.lines import MAX_ASCII_LINES, parse_block, row_blocks
 
 # Values of one point (the sum of COUNT): descriptors such as SHOT (352 values) fit, and an
 # ASCII line of at most 64 KiB could hold no more than about 32,000. A 10 KB file declaring

@@ -1,4 +1,4 @@
-"""The readers behind :func:`pfnet.io.read_point_cloud`, one module per family of formats.
+"""The readers behind :func:`pfnet.io.clouds.read_point_cloud`, one module per family of formats.
 
 Each reader takes a path, returns a numeric ``(N, 3)`` array (any float dtype) and raises
 :class:`~pfnet.errors.DataError` naming the file for what it recognises as wrong; anything
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats.lines import MAX_LINE_BYTES
+from pfnet.io.formats.lines import MAX_LINE_BYTES
 
 # The most points one input cloud may hold (``complete``, ``evaluate``, ``render``): real scans
 # run to a few tens of millions of points, and 50,000,000 points take 600 MB as float32. A

@@ -7,7 +7,7 @@ one row per sample and, for each of several viewing angles, up to three panels: 
 Panels whose clouds are not given are left out.
 
 :func:`render_gallery` draws samples of up to three clouds; :func:`render_panels`, the layout
-of every gallery, is also behind :mod:`pfnet.gallery` and the study's figures. The data sets
+of every gallery, is also behind :mod:`pfnet.viz.gallery` and the study's figures. The data sets
 are y-up (ShapeNet, SweetHome3D), so the y axis is drawn vertical.
 """
 
@@ -219,7 +219,7 @@ def render_panels(
     """Draw rows of labelled panels into a PNG file atomically (the layout of every gallery).
 
     Args:
-        out: Destination ``.png`` path, or ``.html`` for :func:`pfnet.viewer.write_viewer`
+        out: Destination ``.png`` path, or ``.html`` for :func:`pfnet.viz.viewer.write_viewer`
             (``views``, ``panel_inches`` and ``dpi`` then do not apply); its folder is
             created if needed.
         rows: ``(label, panels)`` per row. Each panel title is a column
@@ -245,7 +245,7 @@ def render_panels(
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from pfnet.io import atomic_path, output_path
+    from pfnet.io.clouds import atomic_path, output_path
 
     if not rows:
         raise ConfigError("nothing to draw (no samples)")
@@ -273,7 +273,7 @@ def render_panels(
                         "that is not a finite (N, 3) array"
                     )
     if suffix == ".html":  # the interactive viewer: the same rows, rotatable
-        from pfnet.viewer import write_viewer
+        from pfnet.viz.viewer import write_viewer
 
         return write_viewer(out, rows, title=title, point_size=point_size)
     titles = column_titles(rows)

@@ -4,7 +4,7 @@ read by ``pfnet evaluate`` (strictly: a record it cannot trust is an error) and 
 
 It names the checkpoint, data set, split (and its file's digest), protocol and model of the
 run, and lists the files the run wrote (:func:`run_files`), the only ones ``--overwrite``
-removes (:mod:`pfnet.prediction_folder`).
+removes (:mod:`pfnet.evaluation.prediction_folder`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from pfnet.errors import DataError
-from pfnet.protocols import PROTOCOLS
+from pfnet.evaluation.protocols import PROTOCOLS
 
 # The most a predictions.json may take; its readers (read_record, read_record_or_none) refuse
 # a larger one. The names of the files its run wrote are its bulk, each shape's name listed once
@@ -30,7 +30,7 @@ MAX_RECORD_BYTES = 8 << 20
 
 # What pfnet predict leaves in a prediction folder besides its category folders: the record
 # and a record whose atomic write was interrupted; in a category folder besides the files the
-# record lists, a prediction whose atomic write (pfnet.io.atomic_path) was interrupted.
+# record lists, a prediction whose atomic write (pfnet.io.clouds.atomic_path) was interrupted.
 RECORD = "predictions.json"
 RECORD_TMP = re.compile(r"\.predictions\.[0-9a-f]{12}\.tmp\.json")
 PREDICTION_TMP = re.compile(r"\.(.+)\.[0-9a-f]{12}\.tmp\.npy")
@@ -55,12 +55,12 @@ def run_files(
 ) -> dict[str, Any]:
     """The ``files`` a prediction run records: it writes ``<category>/<name><ending>`` for each
     shape (``<category>/<name>`` not in ``skipped``) and each ending (``<suffix>.npy``, one
-    per view of the protocol: :attr:`pfnet.protocols.Protocol.suffixes`), in a folder for
+    per view of the protocol: :attr:`pfnet.evaluation.protocols.Protocol.suffixes`), in a folder for
     each category.
 
     Returns:
         ``{"endings": [...], "names": {category: [sorted names]}}``; ``--overwrite`` removes
-        only these files (:func:`pfnet.prediction_folder.check_prediction_folder`).
+        only these files (:func:`pfnet.evaluation.prediction_folder.check_prediction_folder`).
     """
     listed: dict[str, list[str]] = {str(category): [] for category in categories}
     for category, name in zip(categories, names, strict=True):
@@ -115,7 +115,7 @@ def recorded_files(info: dict[str, Any]) -> tuple[dict[str, set[str]], list[str]
 def write_record_file(out: Path, info: dict[str, Any], indent: int | None) -> dict[str, Any]:
     """Write ``info`` as ``out/predictions.json``, atomically; its ``files`` None when listing
     them would pass :data:`MAX_RECORD_BYTES` (``--overwrite`` then refuses the folder)."""
-    from pfnet.io import atomic_path
+    from pfnet.io.clouds import atomic_path
 
     text = json.dumps(info, indent=indent) + "\n"
     if len(text.encode("utf-8")) > MAX_RECORD_BYTES:
@@ -157,7 +157,7 @@ def read_record(pred_dir: str | os.PathLike[str]) -> dict[str, Any] | None:
 def _record_problem(info: Any) -> str | None:
     """What is wrong with a ``predictions.json`` document, or None.
 
-    Types are exact, as :func:`pfnet.inference.predict_split` writes them: a string
+    Types are exact, as :func:`pfnet.inference.predict.predict_split` writes them: a string
     ``"false"`` is not a boolean, ``"0.25"`` not a ratio, ``true`` not a count (``bool`` is an
     ``int`` to Python). Keys that older pfnet versions did not write (``complete``,
     ``n_points``, ``model``) may be absent.
@@ -182,8 +182,8 @@ def _record_problem(info: Any) -> str | None:
     name = protocol.get("name", "test")  # "test": PF-Net's protocol, as older records name it
     if not isinstance(name, str):
         return f'"protocol.name" must be a protocol\'s name, got {shown(name)}'
-    from pfnet.formats import MAX_CLOUD_POINTS
-    from pfnet.protocols import PROTOCOL_NAMES, PROTOCOLS
+    from pfnet.evaluation.protocols import PROTOCOL_NAMES, PROTOCOLS
+    from pfnet.io.formats import MAX_CLOUD_POINTS
 
     if name != "test" and name.lower() not in PROTOCOL_NAMES:
         return (

@@ -17,8 +17,8 @@
   fields. Points with a NaN coordinate are dropped: PCL marks the invalid points of an
   organised cloud that way.
 
-A cloud may hold at most :data:`~pfnet.formats.MAX_CLOUD_POINTS` (50,000,000) points, and a
-text one at most :data:`~pfnet.formats.lines.MAX_ASCII_LINES` lines up to its last point.
+A cloud may hold at most :data:`~pfnet.io.formats.MAX_CLOUD_POINTS` (50,000,000) points, and a
+text one at most :data:`~pfnet.io.formats.lines.MAX_ASCII_LINES` lines up to its last point.
 Every problem (missing file, unknown suffix, truncated or malformed data, too many points,
 no points, NaN/inf coordinates) raises :class:`~pfnet.errors.DataError` naming the file and
 the reason.
@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.formats.npy import read_npy
-from pfnet.formats.pcd import read_pcd
-from pfnet.formats.ply import read_ply
-from pfnet.formats.text import read_text
+from pfnet.io.formats.npy import read_npy
+from pfnet.io.formats.pcd import read_pcd
+from pfnet.io.formats.ply import read_ply
+from pfnet.io.formats.text import read_text
 
 # The geometry core's bound (pfnet._core.MAX_COORDINATE), repeated so that reading a file
 # does not load the extension.

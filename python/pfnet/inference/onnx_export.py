@@ -26,7 +26,7 @@ Metadata (``metadata_props``, readable without the weights): ``format``, ``versi
 ``pfnet_version``, ``model``, ``preset``, ``n_points``, ``n_missing``, ``width``,
 ``missing_ratio``, ``config`` (the training configuration as JSON), ``card`` (a shipped
 model's card), ``source`` and ``source_sha256`` (the file exported, see
-:func:`pfnet.runtimes.load_generator`).
+:func:`pfnet.inference.runtimes.load_generator`).
 """
 
 from __future__ import annotations
@@ -170,15 +170,15 @@ def export_onnx(
     Raises:
         ConfigError: ``out`` is not a ``.onnx`` path, or the checkpoint is not found.
         DataError: The model's own output is refused as ``complete`` and ``predict`` refuse
-            it (:func:`pfnet.inference.check_detail`: NaN, infinite or far-out points), or
+            it (:func:`pfnet.inference.predict.check_detail`: NaN, infinite or far-out points), or
             the exported graph disagrees with PyTorch beyond :data:`TOLERANCE`.
     """
     import onnx
 
     from pfnet import __version__
-    from pfnet.checkpoint import load_checkpoint, read_checkpoint
-    from pfnet.io import atomic_path
-    from pfnet.shipped import SUFFIX, describe, read_metadata, resolve_checkpoint
+    from pfnet.inference.checkpoint import load_checkpoint, read_checkpoint
+    from pfnet.inference.shipped import SUFFIX, describe, read_metadata, resolve_checkpoint
+    from pfnet.io.clouds import atomic_path
 
     out = Path(out)
     if out.suffix.lower() != ".onnx":
@@ -231,10 +231,10 @@ def export_onnx(
 
 def _torch_detail(model: Any, partial: np.ndarray, source: Path) -> np.ndarray:
     """PyTorch's detail points for ``partial``, checked as ``complete`` and ``predict`` check
-    a model's output (:func:`pfnet.inference.check_detail`: refused with a DataError)."""
+    a model's output (:func:`pfnet.inference.predict.check_detail`: refused with a DataError)."""
     import torch
 
-    from pfnet.inference import check_detail
+    from pfnet.inference.predict import check_detail
     from pfnet.models.layers import multi_resolution_indices
 
     index = multi_resolution_indices(partial) if model.multi_resolution else None

@@ -6,8 +6,9 @@
     PRED/<category>/<name>.npy    float32 (M, 3): the predicted missing region
     PRED/predictions.json         checkpoint, data, split, protocol, model, files written
 
-The folder and its record: :mod:`pfnet.prediction_folder`, :mod:`pfnet.prediction_record`;
-the field's benchmarks: :mod:`pfnet.benchmark_inference`.
+The folder and its record: :mod:`pfnet.evaluation.prediction_folder`,
+:mod:`pfnet.evaluation.prediction_record`;
+the field's benchmarks: :mod:`pfnet.inference.benchmarks`.
 """
 
 from __future__ import annotations
@@ -19,8 +20,12 @@ from typing import Any
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.prediction_folder import check_prediction_folder, open_prediction_folder, write_record
-from pfnet.prediction_record import run_files
+from pfnet.evaluation.prediction_folder import (
+    check_prediction_folder,
+    open_prediction_folder,
+    write_record,
+)
+from pfnet.evaluation.prediction_record import run_files
 
 # A prediction is in the frame of its partial cloud normalised to the unit ball, where the true
 # missing region lies within radius 1 and a working model's points stay within a few radii.
@@ -78,7 +83,7 @@ def predict_missing(
 
     Args:
         model: A completion model in eval mode (``forward(partial) -> Completion``), or an
-            :class:`pfnet.runtimes.OnnxGenerator` (which runs without torch).
+            :class:`pfnet.inference.runtimes.OnnxGenerator` (which runs without torch).
         partial: float32 ``(S, n, 3)`` partial clouds.
         batch_size: Clouds per forward pass.
         device: Torch device the model lives on.
@@ -92,7 +97,7 @@ def predict_missing(
         DataError: The model's output is not ``(batch, M, 3)`` finite points
             (:func:`check_detail`), or an ONNX model fails to run.
     """
-    from pfnet.runtimes import OnnxGenerator
+    from pfnet.inference.runtimes import OnnxGenerator
 
     if isinstance(model, OnnxGenerator):
         return model.predict_missing(partial, batch_size)
@@ -136,7 +141,7 @@ def predict_split(
         missing_ratio: Ratio of the test crop; default: the checkpoint's training ratio.
         batch_size: Clouds per forward pass.
         device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``.
-        runtime: ``auto``, ``torch`` or ``onnx`` (:func:`pfnet.runtimes.load_generator`).
+        runtime: ``auto``, ``torch`` or ``onnx`` (:func:`pfnet.inference.runtimes.load_generator`).
         overwrite: Replace another run's predictions in ``out_dir``.
 
     Returns:
@@ -148,9 +153,9 @@ def predict_split(
             or a model output refused by :func:`check_detail`.
     """
     from pfnet.data import load_split, test_protocol_crop
-    from pfnet.io import refuse_overlap, save_npy
-    from pfnet.runtimes import load_generator
-    from pfnet.shipped import resolve_checkpoint
+    from pfnet.inference.runtimes import load_generator
+    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.io.clouds import refuse_overlap, save_npy
 
     checkpoint = resolve_checkpoint(checkpoint)
     refuse_overlap(out_dir, [data_dir, checkpoint], flag="prediction folder")
@@ -186,7 +191,7 @@ def predict_split(
             model, np.asarray(partial, dtype=np.float32), batch_size, device, source=checkpoint
         )
     else:  # a scan-frame model sees each partial in its own frame, as `complete` shows it
-        from pfnet.completion import input_frame
+        from pfnet.inference.completion import input_frame
 
         frames = [input_frame(p, frame, f"sample {i}") for i, p in enumerate(partial)]
         batch = np.stack([f.apply(p) for f, p in zip(frames, partial, strict=True)])

@@ -25,7 +25,7 @@ output is compared with, and which metrics, in which units. ``pfnet predict --pr
   completion) and MMD (completion → nearest reference car by CD-L2), both ×1000.
 
 Metrics of ``pcn`` and ``shapenet55`` are PoinTr's (``utils/metrics.py``,
-``extensions/chamfer_dist/__init__.py``): see :func:`pfnet.metrics.sample_metrics`. As
+``extensions/chamfer_dist/__init__.py``): see :func:`pfnet.evaluation.metrics.sample_metrics`. As
 PoinTr's ``ChamferDistanceL1/L2(ignore_zeros=True)`` at batch size 1, points whose
 coordinates sum to exactly 0 are left out of both clouds before the Chamfer terms (not
 before the F-score).

@@ -24,7 +24,7 @@ from pfnet.errors import ConfigError, DataError
 
 FORMAT = "pfnet-shipped-model"
 VERSION = "1"
-WEIGHTS_DIR = Path(__file__).parent / "weights"
+WEIGHTS_DIR = Path(__file__).parent.parent / "weights"
 SUFFIX = ".safetensors"
 # The model `complete` and `predict` use when no --checkpoint is given.
 # The best on the scan protocol (docs/scan-protocol.md): what `pfnet complete` gets.
@@ -211,8 +211,8 @@ def write_shipped(
     import torch
     from safetensors.torch import save_file
 
-    from pfnet.checkpoint import inference_weights, read_checkpoint
-    from pfnet.io import atomic_path
+    from pfnet.inference.checkpoint import inference_weights, read_checkpoint
+    from pfnet.io.clouds import atomic_path
 
     out = Path(out)
     if not out.name.endswith(SUFFIX):

@@ -22,7 +22,7 @@ def check_gallery_options(gallery: Path | None, count: int | None) -> int:
             gallery that is not a ``.png`` or ``.html`` file.
     """
     from pfnet.errors import ConfigError
-    from pfnet.rendering import MAX_ROWS
+    from pfnet.viz.rendering import MAX_ROWS
 
     if gallery is None:
         if count is not None:
@@ -69,9 +69,14 @@ def render_completions(
         DataError: A folder has no prediction for a sample.
     """
     from pfnet.data import load_split, test_protocol_crop
-    from pfnet.evaluation import find_prediction_files
-    from pfnet.io import read_point_cloud
-    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
+    from pfnet.evaluation.scoring import find_prediction_files
+    from pfnet.io.clouds import read_point_cloud
+    from pfnet.viz.rendering import (
+        GROUND_TRUTH_COLOR,
+        PARTIAL_COLOR,
+        PREDICTION_COLOR,
+        render_panels,
+    )
 
     clouds = load_split(data_dir, split)
     index = {
@@ -157,12 +162,17 @@ def render_benchmark_gallery(
     Raises:
         DataError: A prediction is missing or unreadable.
     """
-    from pfnet.benchmark_evaluation import load_references
     from pfnet.data import load_split
-    from pfnet.evaluation import find_prediction_files
-    from pfnet.io import read_point_cloud
-    from pfnet.protocols import category_title, get_protocol, shapenet_crop
-    from pfnet.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR, render_panels
+    from pfnet.evaluation.benchmarks import load_references
+    from pfnet.evaluation.protocols import category_title, get_protocol, shapenet_crop
+    from pfnet.evaluation.scoring import find_prediction_files
+    from pfnet.io.clouds import read_point_cloud
+    from pfnet.viz.rendering import (
+        GROUND_TRUTH_COLOR,
+        PARTIAL_COLOR,
+        PREDICTION_COLOR,
+        render_panels,
+    )
 
     chosen = get_protocol(protocol)
     keys = pick_benchmark_gallery(keys, count, chosen.views)

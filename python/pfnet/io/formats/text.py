@@ -6,8 +6,8 @@ separated by spaces, tabs, commas or semicolons; values written with a decimal c
 of values is written so; ``#`` starts a comment, as does ``//`` at a line's
 start. A Leica ``.pts`` point count is skipped, and a line of column names is skipped and
 orders the columns when it names x, y and z (``z,y,x``, ``id x y z intensity``).
-The file is read a block of lines at a time (:mod:`pfnet.formats.lines`), at most
-:data:`~pfnet.formats.lines.MAX_ASCII_LINES` lines of them, blank and comment lines included.
+The file is read a block of lines at a time (:mod:`pfnet.io.formats.lines`), at most
+:data:`~pfnet.io.formats.lines.MAX_ASCII_LINES` lines of them, blank and comment lines included.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
-from pfnet.formats.lines import BLOCK_LINES, numbered_lines, parse_block
+from pfnet.io.formats.lines import BLOCK_LINES, numbered_lines, parse_block
 
 _SPLIT = re.compile(r"[,;\s]+")
 _COMMENTS = ("#", "//")

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.evaluation import (
+from pfnet.evaluation.protocols import check_protocol_data, get_protocol
+from pfnet.evaluation.scoring import (
     FAR,
     MAX_WORKERS,
     SCALE,
@@ -20,7 +21,6 @@ from pfnet.evaluation import (
     refuse_oversized,
     stack_if_equal,
 )
-from pfnet.protocols import check_protocol_data, get_protocol
 
 
 def evaluate_benchmark(
@@ -36,16 +36,17 @@ def evaluate_benchmark(
 
     Prediction files are ``PRED/<category>/<name>.<ext>`` (``pcn``) or
     ``PRED/<category>/<name>_view<v>.<ext>``, ``v`` = 0..7 (``shapenet55``: one completion
-    per viewpoint of :data:`pfnet.protocols.SHAPENET_VIEWPOINTS`), each the whole completion
-    in the data set's coordinates, any point count. Each is compared with the shape's
-    complete cloud by :func:`pfnet.metrics.sample_metrics` with PoinTr's ``ignore_zeros``;
+    per viewpoint of :data:`pfnet.evaluation.protocols.SHAPENET_VIEWPOINTS`), each the whole
+    completion in the data set's coordinates, any point count. Each is compared with the
+    shape's complete cloud by :func:`pfnet.evaluation.metrics.sample_metrics` with PoinTr's
+    ``ignore_zeros``;
     per category the mean over its files, overall the unweighted mean of the categories (as
     PoinTr's ``test()``); CD-L1, CD-L2 and the two directed terms ×1000, the F-score at 0.01.
 
     Args:
         pred_dir: The prediction folder.
         data_dir: A data set, normally prepared from the benchmark's layout.
-        protocol: A name of :data:`pfnet.protocols.PROTOCOLS` other than ``pfnet``.
+        protocol: A name of :data:`pfnet.evaluation.protocols.PROTOCOLS` other than ``pfnet``.
         split: The split scored.
         missing_ratio: ``shapenet55`` only: the ratio the inputs were cropped with (recorded
             in the report; the ground truth is the complete cloud whatever the ratio).
@@ -56,8 +57,8 @@ def evaluate_benchmark(
         DataError: Missing folders, or no prediction could be scored.
     """
     from pfnet.data import load_split
-    from pfnet.metrics import sample_metrics, summarize
-    from pfnet.protocols import get_protocol
+    from pfnet.evaluation.metrics import sample_metrics, summarize
+    from pfnet.evaluation.protocols import get_protocol
 
     chosen = get_protocol(protocol)
     if chosen.prediction != "complete":
@@ -206,10 +207,10 @@ def evaluate_kitti(
     1, points whose coordinates sum to exactly 0 are left out of inputs and completions.
 
     * Fidelity (lines 29–38): ``mean_I d(i, C)²``, input → completion
-      (:func:`pfnet.metrics.fidelity`). A method whose completion contains its input
+      (:func:`pfnet.evaluation.metrics.fidelity`). A method whose completion contains its input
       scores 0.
     * MMD (lines 82–99): ``min_R CD-L2(C, R)`` over the reference cars
-      (:func:`pfnet.metrics.minimal_matching_distance`, exact); the reference cars are
+      (:func:`pfnet.evaluation.metrics.minimal_matching_distance`, exact); the reference cars are
       taken as they are.
 
     Both ×1000 per category, overall the unweighted mean of the categories (one: ``car``).
@@ -223,7 +224,7 @@ def evaluate_kitti(
     from pfnet.data import load_split
     from pfnet.data.benchmarks import load_partials
     from pfnet.data.kitti import kitti_input, load_boxes
-    from pfnet.metrics import fidelity, minimal_matching_distance, zero_sum_mask
+    from pfnet.evaluation.metrics import fidelity, minimal_matching_distance, zero_sum_mask
 
     if workers is not None and not 1 <= workers <= MAX_WORKERS:
         raise ConfigError(f"workers must be in [1, {MAX_WORKERS}], got {workers}")

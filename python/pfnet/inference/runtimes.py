@@ -3,16 +3,17 @@
 ``pfnet complete`` and ``pfnet predict`` take ``--runtime auto|torch|onnx``:
 
 * ``torch`` loads a checkpoint, model file or shipped model with
-  :func:`pfnet.checkpoint.load_checkpoint` (needs the ``[train]`` extra).
-* ``onnx`` runs an ONNX file written by ``pfnet export`` (:mod:`pfnet.onnx_export`) on ONNX
-  Runtime (the ``[infer]`` extra, no torch): a ``.onnx`` path, or a model file with its ONNX export
-  beside it (``NAME.onnx`` next to ``NAME.safetensors``, as the shipped models have).
+  :func:`pfnet.inference.checkpoint.load_checkpoint` (needs the ``[train]`` extra).
+* ``onnx`` runs an ONNX file written by ``pfnet export`` (:mod:`pfnet.inference.onnx_export`)
+  on ONNX Runtime (the ``[infer]`` extra, no torch): a ``.onnx`` path, or a model file with
+  its ONNX export beside it (``NAME.onnx`` next to ``NAME.safetensors``, as the shipped
+  models have).
 * ``auto`` (the default): an ``.onnx`` path runs on ONNX Runtime; anything else on PyTorch
   when it is installed, else on ONNX Runtime.
 
 Both give a model with the same inference contract (``n_points``, ``n_missing``, and
-:func:`pfnet.inference.predict_missing` accepts either); their completions agree within
-:data:`pfnet.onnx_export.TOLERANCE`. Nothing here imports torch unless it is chosen.
+:func:`pfnet.inference.predict.predict_missing` accepts either); their completions agree within
+:data:`pfnet.inference.onnx_export.TOLERANCE`. Nothing here imports torch unless it is chosen.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ class OnnxGenerator:
     Attributes:
         n_points, n_missing: As the PyTorch generator's.
         config: The training configuration stored in the file (a dict).
-        metadata: All of the file's metadata (see :mod:`pfnet.onnx_export`).
+        metadata: All of the file's metadata (see :mod:`pfnet.inference.onnx_export`).
         device: Where it runs: ``cpu`` or ``cuda[:N]``.
         path: The file.
 
@@ -69,8 +70,8 @@ class OnnxGenerator:
     """
 
     def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
-        from pfnet.onnx_export import FORMAT, VERSION
-        from pfnet.onnx_graph import check_graph
+        from pfnet.inference.onnx_export import FORMAT, VERSION
+        from pfnet.inference.onnx_graph import check_graph
 
         ort = import_onnxruntime("the ONNX runtime")
         self.path = Path(path)
@@ -149,10 +150,10 @@ class OnnxGenerator:
 
         Raises:
             DataError: The model fails to run or its output is not ``(B, M, 3)`` finite points
-                (:func:`pfnet.inference.check_detail`).
+                (:func:`pfnet.inference.predict.check_detail`).
         """
         from pfnet.geometry import farthest_point_sample
-        from pfnet.inference import check_detail
+        from pfnet.inference.predict import check_detail
 
         partial = np.ascontiguousarray(partial, dtype=np.float32)
         feeds = {"partial": partial}
@@ -167,7 +168,8 @@ class OnnxGenerator:
         return check_detail(detail, len(partial), self.n_missing, self.path)
 
     def predict_missing(self, partial: np.ndarray, batch_size: int) -> np.ndarray:
-        """:func:`pfnet.inference.predict_missing` on ONNX Runtime: ``(S, n, 3)`` in batches."""
+        """:func:`pfnet.inference.predict.predict_missing` on ONNX Runtime: ``(S, n, 3)`` in
+        batches."""
         from tqdm import tqdm
 
         if batch_size < 1:
@@ -242,7 +244,7 @@ def load_generator(
         MissingDependency: Neither PyTorch nor ONNX Runtime is installed for the choice.
         DataError: An unreadable file.
     """
-    from pfnet.shipped import resolve_checkpoint
+    from pfnet.inference.shipped import resolve_checkpoint
 
     if runtime not in RUNTIMES:
         raise ConfigError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
@@ -251,8 +253,8 @@ def load_generator(
     if is_onnx and runtime == "torch":
         raise ConfigError(f"{source} is an ONNX model: it runs on ONNX Runtime, not PyTorch")
     if runtime == "torch" or (runtime == "auto" and not is_onnx and has_module("torch")):
-        from pfnet.checkpoint import load_checkpoint
-        from pfnet.devices import inference_device
+        from pfnet.inference.checkpoint import load_checkpoint
+        from pfnet.inference.devices import inference_device
 
         device = inference_device(device)
         model, config = load_checkpoint(source, device=device)
@@ -263,7 +265,7 @@ def load_generator(
         )
     model = OnnxGenerator(source if is_onnx else onnx_export_of(source), device)
     if not is_onnx:
-        from pfnet.onnx_export import file_sha256
+        from pfnet.inference.onnx_export import file_sha256
 
         if model.metadata.get("source_sha256") != file_sha256(source):
             raise DataError(

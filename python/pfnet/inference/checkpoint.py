@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.io import atomic_path
+from pfnet.io.clouds import atomic_path
 from pfnet.models.config import ModelConfig
 
 if TYPE_CHECKING:
@@ -167,7 +167,7 @@ def load_checkpoint(
 
     Args:
         path: A ``last.pt`` or ``best.pt`` written by ``pfnet train``, a model file
-            (``.safetensors``, :mod:`pfnet.shipped`), or the name of a shipped model;
+            (``.safetensors``, :mod:`pfnet.inference.shipped`), or the name of a shipped model;
             ``None`` for the default shipped model. A run trained with ``ema`` gives its
             weight average from either checkpoint (:func:`inference_weights`).
         device: Where to put the model.
@@ -181,8 +181,8 @@ def load_checkpoint(
         ConfigError: ``path`` names neither a file nor a shipped model.
         DataError: The file is unreadable or not a pfnet checkpoint or model file.
     """
+    from pfnet.inference.shipped import SUFFIX, load_weights, read_metadata, resolve_checkpoint
     from pfnet.models import build_model
-    from pfnet.shipped import SUFFIX, load_weights, read_metadata, resolve_checkpoint
 
     path = resolve_checkpoint(path)
     if path.name.endswith(SUFFIX):

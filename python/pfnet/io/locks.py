@@ -80,7 +80,7 @@ def take(folder: str | os.PathLike[str], doing: str, *, shared: bool = False) ->
     """
     import fcntl
 
-    from pfnet.paths import shown
+    from pfnet.io.paths import shown
 
     path = Path(folder)
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)

@@ -13,11 +13,12 @@ Regions (DESIGN.md §5):
   before scoring, or (``pred_is_complete``) a full completion; scored against the complete
   cloud.
 
-Scores come from :func:`pfnet.metrics.sample_metrics` and :func:`pfnet.metrics.summarize`:
+Scores come from :func:`pfnet.evaluation.metrics.sample_metrics` and
+:func:`pfnet.evaluation.metrics.summarize`:
 per-category means, and the unweighted mean of the category means, Pred→GT and GT→Pred
 reported ×1000 as in the paper's tables. The field's benchmarks (``--protocol``) are scored
-by :mod:`pfnet.benchmark_evaluation`; the record ``predictions.json`` is read by
-:mod:`pfnet.prediction_record`.
+by :mod:`pfnet.evaluation.benchmarks`; the record ``predictions.json`` is read by
+:mod:`pfnet.evaluation.prediction_record`.
 """
 
 from __future__ import annotations
@@ -123,7 +124,7 @@ def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, P
 
 
 def _load(path: Path) -> np.ndarray | str:
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     try:
         return read_point_cloud(path)
@@ -163,7 +164,7 @@ def evaluate_predictions(
         DataError: If the folders are missing, or no prediction at all could be scored.
     """
     from pfnet.data import load_split, test_protocol_crop
-    from pfnet.metrics import sample_metrics, summarize
+    from pfnet.evaluation.metrics import sample_metrics, summarize
 
     if region not in REGIONS:
         raise ConfigError(f"region must be one of {REGIONS}, got {region!r}")
@@ -287,7 +288,7 @@ def render_evaluation_gallery(
     ``columns`` (title -> prediction folder) draws several models' completions of the same
     samples side by side instead of ``pred_dir``'s alone.
     """
-    from pfnet.gallery import pick_gallery, render_completions
+    from pfnet.viz.gallery import pick_gallery, render_completions
 
     chosen = pick_gallery(evaluation.categories, count)
     return render_completions(
