@@ -37,7 +37,7 @@ from pfnet.errors import DataError, PfnetError
 from pfnet.evaluation.metrics import sample_metrics, summarize
 from pfnet.evaluation.scoring import SCALE
 from pfnet.geometry import crop_by_viewpoint
-from pfnet.io.clouds import atomic_path
+from pfnet.io.files import atomic_path
 
 MESH_SOURCES = ("sweethome3d", "procedural")
 

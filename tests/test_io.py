@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pfnet.errors import DataError
-from pfnet.io.clouds import atomic_path, read_point_cloud, save_npy, write_ply
+from pfnet.io.clouds import read_point_cloud, save_npy, write_ply
+from pfnet.io.files import atomic_path
 
 
 @pytest.fixture

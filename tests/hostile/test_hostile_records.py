@@ -19,7 +19,8 @@ from forge import write_predictions
 from pfnet import geometry
 from pfnet.cli import main
 from pfnet.errors import DataError, GeometryError
-from pfnet.io.clouds import atomic_path, read_point_cloud
+from pfnet.io.clouds import read_point_cloud
+from pfnet.io.files import atomic_path
 
 
 def _one_line(capsys, *parts: str) -> None:

@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from pfnet.evaluation.metrics import summarize
     from pfnet.evaluation.reports import format_table, write_csv
-    from pfnet.io.clouds import check_report_path
+    from pfnet.io.files import check_report_path
     from pfnet.viz.gallery import check_gallery_options
 
     args.gallery_count = check_gallery_options(args.gallery, args.gallery_count)
@@ -205,7 +205,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
     does."""
     from pfnet.evaluation.protocols import get_protocol
     from pfnet.evaluation.reports import format_benchmark_table, write_csv
-    from pfnet.io.clouds import check_report_path
+    from pfnet.io.files import check_report_path
 
     chosen = get_protocol(protocol)
     for flag, value in (

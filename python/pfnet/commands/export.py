@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     from pfnet.errors import MissingDependency
     from pfnet.inference.runtimes import has_module
     from pfnet.inference.shipped import resolve_checkpoint
-    from pfnet.io.clouds import refuse_input_overwrite
+    from pfnet.io.files import refuse_input_overwrite
 
     if args.out.suffix.lower() != ".onnx":
         raise ConfigError(f"--out must be a .onnx file, got {args.out}")

@@ -190,7 +190,7 @@ def _check_gallery(args: argparse.Namespace) -> None:
         return
     from pfnet.data.format import split_categories
     from pfnet.inference.shipped import resolve_checkpoint
-    from pfnet.io.clouds import check_report_path
+    from pfnet.io.files import check_report_path
 
     inputs = [args.data, resolve_checkpoint(args.checkpoint)]
     categories = split_categories(args.data, args.split)  # the folders to come

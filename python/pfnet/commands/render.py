@@ -56,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet render``."""
-    from pfnet.io.clouds import read_point_cloud, refuse_input_overwrite
+    from pfnet.io.clouds import read_point_cloud
+    from pfnet.io.files import refuse_input_overwrite
     from pfnet.viz.rendering import MAX_POINT_SIZE, MAX_VIEWS, RenderSample, render_gallery
 
     if not args.files and not args.sample:

@@ -229,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     # --out equal to --data gets the shared check's message: outputs apart from the inputs
     other = (args.out / "manifest.json").is_file() or (args.out / "predictions.json").is_file()
     if other and args.out.resolve() != args.data.resolve():
-        from pfnet.io.clouds import other_kind
+        from pfnet.io.files import other_kind
 
         raise ConfigError(f"--out {args.out} is {other_kind(args.out)}; name a folder for the run")
     if not args.resume and (args.out / "last.pt").exists():

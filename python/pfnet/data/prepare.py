@@ -35,7 +35,7 @@ from pfnet.data.sources import FORMATS, OPEN_SHAPE_FORMATS, Scan, ShapeItem, loa
 from pfnet.data.sources.merge import merge_scans, several_manifest, several_sources
 from pfnet.data.splits import assign_splits
 from pfnet.errors import ConfigError, DataError
-from pfnet.io.clouds import refuse_overlap
+from pfnet.io.files import refuse_overlap
 from pfnet.processes import usable_cpus, worker_pool
 
 __all__ = ["PrepareReport", "assign_splits", "prepare_dataset", "process_item"]

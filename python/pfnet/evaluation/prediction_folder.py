@@ -206,7 +206,7 @@ def open_prediction_folder(
 
 def _remove_interrupted_writes(out: Path, categories: list[str]) -> None:
     """Remove the temporary files of writes a killed run left (``.name.<12 hex>.tmp.npy``,
-    ``.predictions.<12 hex>.tmp.json``, as :func:`pfnet.io.clouds.atomic_path` names them):
+    ``.predictions.<12 hex>.tmp.json``, as :func:`pfnet.io.files.atomic_path` names them):
     the folder is locked, so no run is writing them now, and a re-run leaves no hidden files
     behind."""
     folders = [(out, RECORD_TMP)] + [(out / c, PREDICTION_TMP) for c in categories]

@@ -30,7 +30,7 @@ MAX_RECORD_BYTES = 8 << 20
 
 # What pfnet predict leaves in a prediction folder besides its category folders: the record
 # and a record whose atomic write was interrupted; in a category folder besides the files the
-# record lists, a prediction whose atomic write (pfnet.io.clouds.atomic_path) was interrupted.
+# record lists, a prediction whose atomic write (pfnet.io.files.atomic_path) was interrupted.
 RECORD = "predictions.json"
 RECORD_TMP = re.compile(r"\.predictions\.[0-9a-f]{12}\.tmp\.json")
 PREDICTION_TMP = re.compile(r"\.(.+)\.[0-9a-f]{12}\.tmp\.npy")
@@ -115,7 +115,7 @@ def recorded_files(info: dict[str, Any]) -> tuple[dict[str, set[str]], list[str]
 def write_record_file(out: Path, info: dict[str, Any], indent: int | None) -> dict[str, Any]:
     """Write ``info`` as ``out/predictions.json``, atomically; its ``files`` None when listing
     them would pass :data:`MAX_RECORD_BYTES` (``--overwrite`` then refuses the folder)."""
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     text = json.dumps(info, indent=indent) + "\n"
     if len(text.encode("utf-8")) > MAX_RECORD_BYTES:

@@ -78,7 +78,7 @@ def format_kitti_table(report: dict) -> str:
 def write_kitti_csv(path: Path, evaluation: Evaluation) -> None:
     """Per-car scores of the ``kitti`` protocol: category, name, Fidelity and MMD ×1000, and
     the reference car nearest the completion (``<split>/<name>`` in the reference set)."""
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="", encoding="utf-8") as fh:
@@ -94,7 +94,7 @@ def write_kitti_csv(path: Path, evaluation: Evaluation) -> None:
 
 def write_csv(path: Path, evaluation: Evaluation) -> None:
     """Per-sample scores: category, name and the metrics (×1000 except the F-score)."""
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     keys = ("pred_to_gt", "gt_to_pred", "cd_l2", "cd_l1")  # every one ×1000 here
     with atomic_path(path) as tmp:
@@ -111,7 +111,7 @@ def write_csv(path: Path, evaluation: Evaluation) -> None:
 
 def write_json(path: Path, report: dict) -> None:
     """Write the ``--json`` report atomically."""
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")

@@ -69,7 +69,8 @@ def predict_benchmark(
     from pfnet.inference.completion import input_frame, network_input
     from pfnet.inference.runtimes import load_generator
     from pfnet.inference.shipped import resolve_checkpoint
-    from pfnet.io.clouds import refuse_overlap, save_npy
+    from pfnet.io.clouds import save_npy
+    from pfnet.io.files import refuse_overlap
 
     chosen = get_protocol(protocol)
     if chosen.prediction != "complete":
@@ -236,7 +237,8 @@ def predict_kitti(
     from pfnet.inference.completion import network_input
     from pfnet.inference.runtimes import load_generator
     from pfnet.inference.shipped import resolve_checkpoint
-    from pfnet.io.clouds import refuse_overlap, save_npy
+    from pfnet.io.clouds import save_npy
+    from pfnet.io.files import refuse_overlap
 
     if batch_size < 1:
         raise ConfigError(f"batch size must be at least 1, got {batch_size}")

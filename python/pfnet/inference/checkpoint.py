@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from pfnet.errors import ConfigError, DataError
-from pfnet.io.clouds import atomic_path
+from pfnet.io.files import atomic_path
 from pfnet.models.config import ModelConfig
 
 if TYPE_CHECKING:

@@ -303,7 +303,7 @@ def check_outputs(inputs: list[Path], out_dir: Path, *, overwrite: bool = False)
             output would replace an input, or a file pfnet did not write (without
             ``overwrite``), naming it.
     """
-    from pfnet.io.clouds import refuse_input_overwrite
+    from pfnet.io.files import refuse_input_overwrite
 
     stems: dict[str, Path] = {}
     for path in inputs:

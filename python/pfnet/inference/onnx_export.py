@@ -178,7 +178,7 @@ def export_onnx(
     from pfnet import __version__
     from pfnet.inference.checkpoint import load_checkpoint, read_checkpoint
     from pfnet.inference.shipped import SUFFIX, describe, read_metadata, resolve_checkpoint
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     out = Path(out)
     if out.suffix.lower() != ".onnx":

@@ -155,7 +155,8 @@ def predict_split(
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.inference.runtimes import load_generator
     from pfnet.inference.shipped import resolve_checkpoint
-    from pfnet.io.clouds import refuse_overlap, save_npy
+    from pfnet.io.clouds import save_npy
+    from pfnet.io.files import refuse_overlap
 
     checkpoint = resolve_checkpoint(checkpoint)
     refuse_overlap(out_dir, [data_dir, checkpoint], flag="prediction folder")

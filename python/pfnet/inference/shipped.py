@@ -212,7 +212,7 @@ def write_shipped(
     from safetensors.torch import save_file
 
     from pfnet.inference.checkpoint import inference_weights, read_checkpoint
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     out = Path(out)
     if not out.name.endswith(SUFFIX):

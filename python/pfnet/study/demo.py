@@ -182,7 +182,7 @@ def run_demo(
     from pfnet.inference.devices import inference_device
     from pfnet.inference.predict import predict_split
     from pfnet.inference.shipped import describe
-    from pfnet.io.clouds import other_kind
+    from pfnet.io.files import other_kind
     from pfnet.training import train
     from pfnet.training.config import preset_config
 

@@ -23,7 +23,7 @@ def plot_curves(path: Path, results: dict[str, Any]) -> Path:
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     fig = Figure(figsize=(10, 3.6), dpi=90)
     axes = fig.subplots(1, 2)

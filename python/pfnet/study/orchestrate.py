@@ -274,7 +274,7 @@ def _dataset_summary(manifest: dict[str, Any]) -> dict[str, Any]:
 
 def write_results(out: Path, results: dict[str, Any], data_dir: Path, gallery_count: int) -> None:
     """Write ``results.json``, ``results.md``, ``curves.png`` and ``gallery.png`` into ``out``."""
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     with atomic_path(out / "results.json") as tmp:
         tmp.write_text(json.dumps(results, indent=1) + "\n")
@@ -286,7 +286,7 @@ def write_results(out: Path, results: dict[str, Any], data_dir: Path, gallery_co
 
 def rewrite_report(out: Path, results: dict[str, Any], data_dir: Path, gallery_count: int) -> None:
     """Rebuild ``out``'s report from ``results``: the figures too if the runs and data are there."""
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     if (out / "runs").is_dir() and (data_dir / "manifest.json").is_file():
         write_results(out, results, data_dir, gallery_count)

@@ -383,7 +383,7 @@ def update_readme(readme: Path, section: str) -> None:
     Raises:
         ConfigError, DataError: As :func:`read_readme`.
     """
-    from pfnet.io.clouds import atomic_path
+    from pfnet.io.files import atomic_path
 
     text = read_readme(readme)
     start, end = text.find(README_BEGIN), text.find(README_END)
@@ -410,7 +410,7 @@ def publish(out: Path, dest: Path) -> None:
         DataError: A run name that is not a plain name, or a linked folder in ``dest``.
     """
     from pfnet.data.format import unsafe_component
-    from pfnet.io.clouds import atomic_path, other_kind
+    from pfnet.io.files import atomic_path, other_kind
 
     if dest.resolve() == out.resolve():
         return

@@ -33,7 +33,7 @@ from tqdm import tqdm
 from pfnet.data.augment import augmentation_for, scan_up_axis
 from pfnet.errors import ConfigError, DataError
 from pfnet.inference.checkpoint import read_checkpoint
-from pfnet.io.clouds import atomic_path, refuse_overlap
+from pfnet.io.files import atomic_path, refuse_overlap
 from pfnet.io.locks import writing
 from pfnet.processes import ignore_stop_signals, start_helpers
 from pfnet.training import distributed

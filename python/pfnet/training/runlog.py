@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from pfnet.io.clouds import atomic_path
+from pfnet.io.files import atomic_path
 
 
 def write_log(path: Path, history: list[dict[str, Any]]) -> None:

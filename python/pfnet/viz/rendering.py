@@ -245,7 +245,7 @@ def render_panels(
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from pfnet.io.clouds import atomic_path, output_path
+    from pfnet.io.files import atomic_path, output_path
 
     if not rows:
         raise ConfigError("nothing to draw (no samples)")

@@ -71,7 +71,7 @@ def write_viewer(
     """
     from pfnet.errors import MissingDependency
     from pfnet.inference.runtimes import has_module
-    from pfnet.io.clouds import atomic_path, output_path
+    from pfnet.io.files import atomic_path, output_path
     from pfnet.viz.rendering import column_titles as columns_of
 
     if not has_module("plotly"):

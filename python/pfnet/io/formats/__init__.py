@@ -182,3 +182,7 @@ def first_three_columns(file: Path, array: np.ndarray) -> np.ndarray:
     """Check a 2-D numeric array with at least three columns and return its first three."""
     check_table(file, array.shape, array.dtype)
     return array[:, :3]
+
+
+POINT_CLOUD_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".xyz", ".pts", ".txt", ".pcd")
+"""File suffixes :func:`pfnet.io.clouds.read_point_cloud` understands (lower case)."""
