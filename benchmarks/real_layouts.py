@@ -35,7 +35,8 @@ def mesh_clouds(count: int, n_points: int) -> list[np.ndarray]:
     """Surface samples of the first ``count`` SweetHome3D models (procedural shapes without the
     catalogue), centred and scaled to PCN's size."""
     from pfnet.data.sampling import sample_surface
-    from pfnet.data.sources import load_item, procedural, sweethome3d
+    from pfnet.data.sources import procedural, sweethome3d
+    from pfnet.data.sources.registry import load_item
 
     rng = np.random.default_rng(0)
     if SH3D.is_file():

@@ -14,16 +14,11 @@ from brute import capture_panels, naive_fps, nearest_distances, needs_runtime, w
 from pfnet.cli import main
 from pfnet.data import load_split, prepare_dataset
 from pfnet.data.benchmarks import load_partials
+from pfnet.data.categories import SHAPENET_SYNSETS, category_title
 from pfnet.errors import ConfigError, DataError
 from pfnet.evaluation.benchmarks import evaluate_benchmark
 from pfnet.evaluation.metrics import fidelity, minimal_matching_distance, sample_metrics
-from pfnet.evaluation.protocols import (
-    SHAPENET_SYNSETS,
-    SHAPENET_VIEWPOINTS,
-    category_title,
-    get_protocol,
-    shapenet_crop,
-)
+from pfnet.evaluation.protocols import SHAPENET_VIEWPOINTS, get_protocol, shapenet_crop
 
 SH3D = Path("/usr/share/sweethome3d/furniture/BlendSwap-CC-0.sh3f")
 
@@ -61,7 +56,7 @@ def pointr_reference(pred: np.ndarray, gt: np.ndarray, th: float = 0.01) -> dict
 def real_clouds(count: int, n_points: int) -> list[np.ndarray]:
     """Surface samples of real SweetHome3D models (procedural shapes without the package)."""
     from pfnet.data.sampling import sample_surface
-    from pfnet.data.sources import load_item
+    from pfnet.data.sources.registry import load_item
 
     rng = np.random.default_rng(0)
     if SH3D.is_file():

@@ -9,7 +9,7 @@ import pytest
 from pfnet.cli import main
 from pfnet.data import load_split, read_manifest
 from pfnet.data.benchmarks import BENCHMARK_FORMATS
-from pfnet.data.sources import FORMATS
+from pfnet.data.sources.registry import FORMATS
 
 
 def test_prepare_procedural(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,8 +11,8 @@ import pytest
 import trimesh
 
 from pfnet.data import SWEETHOME3D_PATH, load_split, prepare_dataset, read_manifest
-from pfnet.data.sources import detect_format
 from pfnet.data.sources.procedural import build_shape
+from pfnet.data.sources.registry import detect_format
 from pfnet.data.sources.sweethome3d import category_for, parse_obj, parse_properties
 from pfnet.errors import ConfigError, DataError
 

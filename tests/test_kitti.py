@@ -48,7 +48,8 @@ def car_surfaces(count: int) -> list[np.ndarray]:
     """Real cars (SweetHome3D, y up) sampled and turned into a car frame: z up, length along
     +x, the box centred at the origin, LENGTH metres long."""
     from pfnet.data.sampling import sample_surface
-    from pfnet.data.sources import load_item, sweethome3d
+    from pfnet.data.sources import sweethome3d
+    from pfnet.data.sources.registry import load_item
 
     if not KATOR.is_file():  # pragma: no cover
         pytest.skip("Debian's sweethome3d-furniture is not installed")

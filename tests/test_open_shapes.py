@@ -12,8 +12,8 @@ import pytest
 
 from pfnet.data.format import SPLITS, load_split
 from pfnet.data.prepare import prepare_dataset
-from pfnet.data.sources import detect_format
 from pfnet.data.sources import flightgear as fg
+from pfnet.data.sources.registry import detect_format
 from pfnet.errors import ConfigError, DataError
 
 BOX_FACES = [
@@ -296,7 +296,7 @@ REAL = {
 @pytest.mark.real_data
 @pytest.mark.parametrize("name", sorted(REAL))
 def test_real_trees_scan(name: str) -> None:
-    from pfnet.data.sources import _open_shape_sources
+    from pfnet.data.sources.registry import _open_shape_sources
 
     if not REAL[name].is_dir():
         pytest.skip(f"{REAL[name]} is absent: apt-get install {name}-data")

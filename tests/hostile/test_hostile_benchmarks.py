@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 from brute import write_pcd
 
-from pfnet.data.benchmarks import MAX_INDEX_BYTES, load_partials, prepare_benchmark
+from pfnet.data.benchmarks import load_partials, prepare_benchmark
 from pfnet.data.kitti import load_boxes
+from pfnet.data.layouts import MAX_INDEX_BYTES
 from pfnet.data.sources import unique_names
 from pfnet.errors import DataError
 

@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _frame_line(config: dict) -> str:
-    """The frame the model's input is given in (:data:`pfnet.models.config.FRAMES`)."""
+    """The frame the model's input is given in (:data:`pfnet.data.scan_frame.FRAMES`)."""
     frame = config.get("frame", "shape")
     return {
         "shape": "shape: trained in the complete shape's frame (the paper's protocol); "

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pfnet.data.sources import FORMATS
+from pfnet.data.sources.registry import FORMATS
 from pfnet.errors import ConfigError
 
 HELP = "Build a completion dataset (sampled, normalised point clouds) from a source."

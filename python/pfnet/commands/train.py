@@ -11,8 +11,8 @@ import json
 import sys
 from pathlib import Path
 
+from pfnet.data.scan_frame import FRAMES
 from pfnet.errors import ConfigError, DataError
-from pfnet.models.config import FRAMES
 from pfnet.models.registry import MODEL_NAMES
 from pfnet.training.config import (
     CHAMFER_KINDS,

@@ -6,7 +6,8 @@ Importing ``pfnet.data`` needs neither torch nor trimesh; the torch ``Dataset`` 
 
 from pfnet.data.crops import missing_count, test_protocol_crop, test_protocol_viewpoints
 from pfnet.data.format import SPLITS, CloudSet, load_split, read_manifest
-from pfnet.data.prepare import PrepareReport, prepare_dataset
+from pfnet.data.prepare import prepare_dataset
+from pfnet.data.prepared import PrepareReport
 from pfnet.data.sources.sweethome3d import DEFAULT_PATH as SWEETHOME3D_PATH
 
 __all__ = [

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import os
-import stat
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -53,8 +52,16 @@ from pfnet.data.format import (
     SPLITS,
     CloudSet,
     skipped_entries,
-    unsafe_component,
     write_dataset,
+)
+from pfnet.data.layouts import (
+    PARTIAL_SUFFIX,
+    bad_entry,
+    file_id,
+    keep_categories,
+    read_index,
+    repeated,
+    shown,
 )
 from pfnet.errors import DataError
 
@@ -78,11 +85,8 @@ BENCHMARK_FORMATS: tuple[str, ...] = ("pcn", *SHAPENET_LISTS, "kitti")
 """The benchmark layouts ``pfnet prepare --format`` reads."""
 
 PROTOCOL_OF = {"pcn": "pcn", **dict.fromkeys(SHAPENET_LISTS, "shapenet55")}
-PARTIAL_SUFFIX = ".partial.npz"
 # A partial scan of PCN has a few hundred to a few thousand points.
 MAX_PARTIAL_POINTS = 1 << 20
-# PCN.json is about 1 MB and a ShapeNet-55 list under 2 MB; 2 GiB sparse ones took 4 GB.
-MAX_INDEX_BYTES = 16 << 20
 
 
 @dataclass(frozen=True)
@@ -92,55 +96,6 @@ class _Entry:
     model: str
     complete: Path
     partial: Path | None
-
-
-def read_index(path: Path, what: str) -> str:
-    """The text of an index file (PCN.json, KITTI.json, a ShapeNet split list), refused
-    beyond :data:`MAX_INDEX_BYTES` before it is read whole."""
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read(MAX_INDEX_BYTES + 1)
-    except OSError as err:
-        raise DataError(f"{path}: cannot read the {what}: {err.strerror or err}") from None
-    if len(data) > MAX_INDEX_BYTES:
-        raise DataError(f"{path}: larger than {MAX_INDEX_BYTES >> 20} MB; not a {what}")
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: cannot read the {what}: not UTF-8 text") from None
-
-
-def shown(text: str) -> str:
-    """An untrusted name for messages: control characters escaped, cut to 100 characters."""
-    return ascii(text[:100])[1:-1] + ("..." if len(text) > 100 else "")
-
-
-def bad_entry(index: Path, *parts: str) -> tuple[str, str] | None:
-    """The ``(where, why)`` to skip an index entry whose parts cannot be file names (too
-    long, ``/``, control characters...), decided before the file system is touched."""
-    for part in parts:
-        why = unsafe_component(part)
-        if why is not None:
-            return f"{index}: entry {shown(part)}", f"the name {why}"
-    return None
-
-
-def file_id(path: Path) -> tuple[int, int] | None:
-    """``(device, inode)`` of a regular file, or None (missing, or a name the system
-    refuses, such as one over 255 bytes)."""
-    try:
-        status = path.stat()
-    except (OSError, ValueError):
-        return None
-    return (status.st_dev, status.st_ino) if stat.S_ISREG(status.st_mode) else None
-
-
-def repeated(repeats: Counter, first: dict, index: str) -> list[tuple[str, str]]:
-    """One skipped line for each file an index lists more than once (read once)."""
-    return [
-        (first[key][0], f"listed {n + 1} times in {index}; read once, as {first[key][1]}")
-        for key, n in repeats.items()
-    ]
 
 
 def detect_benchmark(root: Path) -> str | None:
@@ -285,26 +240,6 @@ def _read(entry: _Entry, fmt: str) -> tuple[np.ndarray | None, np.ndarray | None
         return None, None, str(err).removeprefix(f"{entry.complete}: ")
 
 
-def keep_categories(entries: list, categories: list[str] | None) -> list:
-    """The index entries of ``categories`` (all of them with None).
-
-    Raises:
-        ConfigError: A category that no entry has, naming the ones there are.
-    """
-    if categories is None:
-        return entries
-    keep = {c.lower() for c in categories}
-    available = sorted({e.category for e in entries})
-    unknown = sorted(keep - set(available))
-    if unknown:
-        from pfnet.errors import ConfigError
-
-        raise ConfigError(
-            f"categories: {', '.join(unknown)} not in the source; available: {', '.join(available)}"
-        )
-    return [e for e in entries if e.category in keep]
-
-
 def prepare_benchmark(
     source: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -319,13 +254,13 @@ def prepare_benchmark(
     or from the KITTI layout (:func:`pfnet.data.kitti.prepare_kitti`).
 
     Returns:
-        A :class:`pfnet.data.prepare.PrepareReport`.
+        A :class:`pfnet.data.prepared.PrepareReport`.
 
     Raises:
         DataError: A malformed index, no readable shape, or (``strict``) any bad file.
     """
     from pfnet import __version__
-    from pfnet.data.prepare import PrepareReport
+    from pfnet.data.prepared import PrepareReport
     from pfnet.data.sources import unique_names
 
     if fmt == "kitti":

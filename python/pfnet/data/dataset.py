@@ -12,10 +12,9 @@ from torch.utils.data import Dataset
 from pfnet.data.augment import Augmentation, up_axis_index
 from pfnet.data.crops import missing_count, test_protocol_viewpoints
 from pfnet.data.format import CloudSet, load_split, read_manifest
-from pfnet.data.scan_frame import scan_angle, scan_frame, up_rotation
+from pfnet.data.scan_frame import FRAMES, scan_angle, scan_frame, up_rotation
 from pfnet.data.scanner import scanner_sample, test_sample_rng
 from pfnet.errors import ConfigError, DataError
-from pfnet.models.config import FRAMES
 
 __all__ = ["CROPS", "TEST_CROPS", "CompletionDataset", "validation_crop"]
 

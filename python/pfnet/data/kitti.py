@@ -156,7 +156,7 @@ class _Car:
 
 
 def _kitti_entries(root: Path) -> tuple[list[_Car], list[tuple[str, str]]]:
-    from pfnet.data.benchmarks import bad_entry, file_id, read_index, repeated
+    from pfnet.data.layouts import bad_entry, file_id, read_index, repeated
 
     index = root / "KITTI.json"
     listed: list[tuple[str, str]] = []  # category, model
@@ -243,15 +243,15 @@ def prepare_kitti(
     named in the report and the manifest.
 
     Returns:
-        A :class:`pfnet.data.prepare.PrepareReport`.
+        A :class:`pfnet.data.prepared.PrepareReport`.
 
     Raises:
         DataError: A malformed ``KITTI.json``, no readable car, or (``strict``) any bad file.
     """
     from pfnet import __version__
-    from pfnet.data.benchmarks import PARTIAL_SUFFIX, keep_categories
     from pfnet.data.format import SPLITS, CloudSet, skipped_entries, write_dataset
-    from pfnet.data.prepare import PrepareReport
+    from pfnet.data.layouts import PARTIAL_SUFFIX, keep_categories
+    from pfnet.data.prepared import PrepareReport
     from pfnet.data.sources import unique_names
 
     start = time.perf_counter()

@@ -15,12 +15,11 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from pfnet.data.distinct import distinct_sample, distinct_summary, split_distinct
+from pfnet.data.distinct import distinct_sample, split_distinct
 from pfnet.data.format import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -30,89 +29,27 @@ from pfnet.data.format import (
     skipped_entries,
     write_dataset,
 )
+from pfnet.data.prepared import PrepareReport
 from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
-from pfnet.data.sources import FORMATS, OPEN_SHAPE_FORMATS, Scan, ShapeItem, load_item
+from pfnet.data.sources import Scan, ShapeItem
 from pfnet.data.sources.merge import merge_scans, several_manifest, several_sources
+from pfnet.data.sources.registry import FORMATS, OPEN_SHAPE_FORMATS, load_item
 from pfnet.data.splits import assign_splits
 from pfnet.errors import ConfigError, DataError
 from pfnet.io.files import refuse_overlap
 from pfnet.processes import usable_cpus, worker_pool
 
-__all__ = ["PrepareReport", "assign_splits", "prepare_dataset", "process_item"]
+__all__ = ["assign_splits", "prepare_dataset", "process_item"]
 
 
 MIN_POINTS = 16
 MAX_POINTS = 1 << 16  # the most points a model takes (pfnet.models.config.MAX_POINTS)
 # Procedural shapes per category: 10^9 grew past 3 GB before a shape was made.
 MAX_COUNT = 100_000
-SKIPPED_SHOWN = 20  # skipped files the summary names; the manifest keeps more
 MAX_POOL = 1 << 20  # points per shape; 12 MiB a shape in float32
 DEFAULT_PROCEDURAL_COUNT = 100
 # Below this many shapes per worker a process pool costs more than it saves.
 _MIN_ITEMS_PER_WORKER = 8
-
-
-@dataclass
-class PrepareReport:
-    """What :func:`prepare_dataset` wrote.
-
-    Attributes:
-        out: The dataset folder.
-        format: The source format.
-        counts: ``{split: {category: shapes}}``.
-        skipped: ``(path, reason)`` of every shape that could not be prepared.
-        dropped: Shapes left out on purpose, by reason (e.g. ``unmatched``, ``light_source``).
-        seconds: Wall time.
-        manifest: The manifest written.
-        distinct: The manifest's ``distinct`` record (:func:`pfnet.data.distinct.split_distinct`).
-    """
-
-    out: Path
-    format: str
-    counts: dict[str, dict[str, int]]
-    skipped: list[tuple[str, str]] = field(default_factory=list)
-    dropped: dict[str, int] = field(default_factory=dict)
-    seconds: float = 0.0
-    manifest: dict = field(default_factory=dict)
-    distinct: dict = field(default_factory=dict)
-
-    @property
-    def total(self) -> int:
-        """Shapes written, all splits together."""
-        return sum(sum(c.values()) for c in self.counts.values())
-
-    def summary(self) -> str:
-        """A short human-readable table: shapes per category and split, skipped and dropped."""
-        from pfnet.evaluation.protocols import category_title
-
-        categories = sorted({c for counts in self.counts.values() for c in counts})
-        titles = {c: category_title(c) for c in categories} | {"total": "total"}
-        width = max([len(t) for t in titles.values()] + [8])
-        lines = [
-            f"wrote {self.out}: {self.total} shapes from {self.format} in {self.seconds:.1f} s",
-            f"{'category':<{width}} " + " ".join(f"{s:>6}" for s in (*SPLITS, "total")),
-        ]
-        for category in [*categories, "total"]:
-            row = [
-                sum(self.counts[s].values())
-                if category == "total"
-                else self.counts[s].get(category, 0)
-                for s in SPLITS
-            ]
-            cells = " ".join(f"{n:>6}" for n in (*row, sum(row)))
-            lines.append(f"{titles[category]:<{width}} {cells}")
-        for reason, count in sorted(self.dropped.items()):
-            if count:
-                hint = " (categories 'all' keeps them)" if reason == "unmatched" else ""
-                lines.append(f"dropped {count} shapes: {reason.replace('_', ' ')}{hint}")
-        lines += distinct_summary(self.distinct)
-        if self.skipped:
-            lines.append(f"skipped {len(self.skipped)} files:")
-            shown = self.skipped[:SKIPPED_SHOWN]
-            lines += [f"  {path[:300]}: {reason[:300]}" for path, reason in shown]
-            if len(self.skipped) > len(shown):
-                lines.append(f"  … and {len(self.skipped) - len(shown)} more")
-        return "\n".join(lines)
 
 
 def process_item(task: tuple) -> tuple:
@@ -221,7 +158,8 @@ def _check_arguments(
 
 
 def _scan(fmt: str, source, count: int | None, strict: bool) -> Scan:
-    from pfnet.data.sources import meshes, procedural, scan_open_shapes, shapenet_part, sweethome3d
+    from pfnet.data.sources import meshes, procedural, shapenet_part, sweethome3d
+    from pfnet.data.sources.registry import scan_open_shapes
 
     if fmt == "procedural":
         if source is not None and str(source) != "procedural":

@@ -25,6 +25,7 @@ from pfnet.data.sampling import Normalisation, unit_ball
 from pfnet.errors import ConfigError
 
 __all__ = [
+    "FRAMES",
     "UP_AXES",
     "Pose",
     "ScanFrame",
@@ -35,6 +36,13 @@ __all__ = [
     "to_y_up",
     "up_rotation",
 ]
+
+# The frame a network's input is given in (DESIGN.md §3, ``ModelConfig.frame``): ``shape``,
+# the complete shape's centroid and radius (the paper's protocol: information a real scan
+# never has); ``scan``, the partial cloud's own centroid and radius, as ``pfnet complete``
+# normalises a scan; or ``aligned``, the scan frame turned about the up axis to the partial's
+# main horizontal axis (:func:`scan_frame`).
+FRAMES = ("shape", "scan", "aligned")
 
 UP_AXES = ("y", "z")
 """The up axes a scan may have: ``y`` (the data sets', SweetHome3D's, OpenGL's) or ``z``
@@ -150,7 +158,7 @@ class ScanFrame:
 
 
 def scan_frame(partial: np.ndarray, *, aligned: bool = False, up_axis: int = 1) -> ScanFrame:
-    """The frame a scan-frame network sees ``partial`` in (:data:`pfnet.models.config.FRAMES`).
+    """The frame a scan-frame network sees ``partial`` in (:data:`FRAMES`).
 
     ``scan``: the partial's own centroid and max radius. ``aligned`` (``aligned=True``): then
     turned about the up axis so that the main axis of its horizontal spread (the principal

@@ -39,7 +39,7 @@ def format_benchmark_table(report: dict) -> str:
     """A benchmark protocol's table (:func:`pfnet.evaluation.benchmarks.evaluate_benchmark`):
     per category CD-L1, CD-L2, Pred→GT, GT→Pred ×1000 and the F-score, then the unweighted
     mean; ShapeNet synset ids are shown with their names."""
-    from pfnet.evaluation.protocols import category_title
+    from pfnet.data.categories import category_title
 
     header = (
         f"{'category':<21} {'n':>6} {'CD-L1':>9} {'CD-L2':>9} {'Pred→GT':>9} "

@@ -154,7 +154,7 @@ class Completion:
             followed by ``missing``.
         model: The model file that completed it.
         frame: The frame that model was trained in (``scan`` or ``shape``, see
-            :data:`pfnet.models.config.FRAMES`).
+            :data:`pfnet.data.scan_frame.FRAMES`).
         runtime: ``torch`` or ``onnx``.
     """
 

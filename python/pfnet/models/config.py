@@ -14,6 +14,7 @@ import reprlib
 from dataclasses import dataclass
 from typing import Any, Self
 
+from pfnet.data.scan_frame import FRAMES
 from pfnet.errors import ConfigError
 from pfnet.models.registry import MODEL_NAMES
 
@@ -26,13 +27,6 @@ MAX_POINTS = 1 << 16
 # defaults, or the authors' N(0, 0.02) convolutions and N(1, 0.02) BatchNorm weights.
 INIT_SCHEMES = ("pytorch", "authors")
 
-# The frame a network's input is given in (DESIGN.md §3): ``shape``, the complete shape's
-# centroid and radius (the paper's protocol: information a real scan never has); ``scan``,
-# the partial cloud's own centroid and radius, as ``pfnet complete`` normalises a scan; or
-# ``aligned``, the scan frame turned about the up axis to the partial's main horizontal axis
-# (:func:`pfnet.data.scan_frame.scan_frame`).
-FRAMES = ("shape", "scan", "aligned")
-
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -43,10 +37,11 @@ class ModelConfig:
         n_points: N, points per complete cloud; ``None`` = taken from the dataset.
         missing_ratio: Fraction of the N points removed by the crop; M = round(ratio · N).
         width: Multiplier of every hidden layer (1.0 = the paper's network).
-        frame: The frame of the network's input, one of :data:`FRAMES`: ``shape`` (the
-            complete shape's, the paper's; what every model file written before the key
-            existed was trained in), ``scan`` (the partial's own centroid and radius) or
-            ``aligned`` (that frame turned to the partial's main horizontal axis).
+        frame: The frame of the network's input, one of
+            :data:`pfnet.data.scan_frame.FRAMES`: ``shape`` (the complete shape's, the paper's;
+            what every model file written before the key existed was trained in), ``scan``
+            (the partial's own centroid and radius) or ``aligned`` (that frame turned to the
+            partial's main horizontal axis).
     """
 
     model: str = "pfnet"

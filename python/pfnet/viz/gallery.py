@@ -163,8 +163,9 @@ def render_benchmark_gallery(
         DataError: A prediction is missing or unreadable.
     """
     from pfnet.data import load_split
+    from pfnet.data.categories import category_title
     from pfnet.evaluation.benchmarks import load_references
-    from pfnet.evaluation.protocols import category_title, get_protocol, shapenet_crop
+    from pfnet.evaluation.protocols import get_protocol, shapenet_crop
     from pfnet.evaluation.scoring import find_prediction_files
     from pfnet.io.clouds import read_point_cloud
     from pfnet.viz.rendering import (

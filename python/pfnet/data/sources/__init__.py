@@ -1,12 +1,13 @@
 """The data sources ``pfnet prepare`` reads, each turned into a list of :class:`ShapeItem`.
 
 A source module has a ``scan(...) -> Scan`` that finds the shapes without loading them, and
-the worker processes call :func:`load_item` to load one shape as a mesh or a point cloud.
+the worker processes call :func:`~pfnet.data.sources.registry.load_item` to load one shape as
+a mesh or a point cloud. This module holds what every source shares (the items, the scans,
+the names); :mod:`pfnet.data.sources.registry` is the list of sources, and imports them.
 """
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -15,33 +16,17 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.data.format import RECORD_NAME
-from pfnet.errors import ConfigError, DataError
+from pfnet.errors import ConfigError
 
 __all__ = [
-    "FORMATS",
-    "OPEN_SHAPE_FORMATS",
     "Geometry",
     "Scan",
     "ShapeItem",
-    "detect_format",
-    "load_item",
     "pick_source",
     "safe_name",
-    "scan_open_shapes",
     "unique_names",
 ]
 
-FORMATS: tuple[str, ...] = (
-    "meshes",
-    "shapenet-part",
-    "sweethome3d",
-    "procedural",
-    "flightgear",
-    "torcs",
-    "crrcsim",
-    "sweethome3d-app",
-)
-"""The source formats ``pfnet prepare --format`` accepts (besides ``auto``)."""
 
 _UNSAFE = re.compile(r"[^a-z0-9._-]+")
 _MAX_NAME = 96
@@ -159,100 +144,3 @@ def unique_names(wanted: Mapping[str, str]) -> dict[str, str]:
         taken.add(name)
         names[key] = name
     return names
-
-
-def load_item(item: ShapeItem, seed: int) -> Geometry:
-    """Load one shape (runs in a worker process).
-
-    Args:
-        item: The shape.
-        seed: The dataset seed (procedural shapes are built from it).
-
-    Returns:
-        The shape's geometry.
-    """
-    if item.kind == "mesh-file":
-        from pfnet.data.sources.meshes import load_mesh_file
-
-        return load_mesh_file(item.path)
-    if item.kind == "cloud-file":
-        from pfnet.io.clouds import read_point_cloud
-
-        return Geometry(read_point_cloud(item.path))
-    if item.kind == "sh3f":
-        from pfnet.data.sources.sweethome3d import load_model
-
-        return load_model(*item.args)
-    if item.kind == "ac3d":
-        from pfnet.data.sources.ac3d_trees import load_ac3d_item
-
-        return load_ac3d_item(*item.args)
-    if item.kind == "procedural":
-        from pfnet.data.sources.procedural import build_shape
-
-        return build_shape(item.category, seed, item.key)
-    raise ValueError(f"unknown shape kind {item.kind!r}")
-
-
-def detect_format(source: str | os.PathLike[str] | None) -> str:
-    """Guess the source format.
-
-    Args:
-        source: ``None`` or ``"procedural"``, a ``.sh3f`` file, or a folder.
-
-    Returns:
-        One of :data:`pfnet.data.sources.FORMATS` or
-        :data:`pfnet.data.benchmarks.BENCHMARK_FORMATS`.
-
-    Raises:
-        DataError: The source does not exist or matches no format.
-    """
-    from pfnet.data.benchmarks import detect_benchmark
-    from pfnet.data.sources import meshes, shapenet_part, sweethome3d
-
-    if source is None or str(source) == "procedural":
-        return "procedural"
-    path = Path(source)
-    if not path.exists():
-        raise DataError(f"{path}: no such file or folder")
-    if sweethome3d.looks_like(path):
-        return "sweethome3d"
-    for name, module in _open_shape_sources().items():
-        if module.looks_like(path):
-            return name
-    if shapenet_part.looks_like(path):
-        return "shapenet-part"
-    benchmark = detect_benchmark(path)
-    if benchmark is not None:
-        return benchmark
-    if meshes.looks_like(path):
-        return "meshes"
-    if path.is_dir() and not any(path.iterdir()):
-        raise DataError(f"{path}: the source folder is empty")
-    raise DataError(
-        f"{path}: cannot detect the format (expected *.sh3f catalogues, a ShapeNet-Part tree "
-        f"with {shapenet_part.CATEGORY_FILE}, or <category>/<mesh file> folders); "
-        "give the format (meshes, shapenet-part or sweethome3d)"
-    )
-
-
-OPEN_SHAPE_FORMATS = ("flightgear", "torcs", "crrcsim", "sweethome3d-app")
-"""The formats of the open-shapes sources (:func:`scan_open_shapes`)."""
-
-
-def scan_open_shapes(fmt: str, path: Path) -> Scan:
-    """Scan a FlightGear, TORCS or crrcsim tree or the SweetHome3D application."""
-    return _open_shape_sources()[fmt].scan(path)
-
-
-def _open_shape_sources() -> dict:
-    """The sources of the open-shapes corpus, by format name (FlightGear, TORCS, crrcsim, the
-    SweetHome3D application's catalogue)."""
-    from pfnet.data.sources import crrcsim, flightgear, sweethome3d_app, torcs
-
-    return {
-        "flightgear": flightgear,
-        "torcs": torcs,
-        "crrcsim": crrcsim,
-        "sweethome3d-app": sweethome3d_app,
-    }

@@ -63,7 +63,7 @@ def several_sources(source, format: str, benchmark_formats) -> tuple:
     Raises:
         ConfigError: An empty list, or a benchmark or procedural source among several.
     """
-    from pfnet.data.sources import detect_format
+    from pfnet.data.sources.registry import detect_format
 
     if isinstance(source, (list, tuple)) and not source:
         raise ConfigError("no source given")
