@@ -200,7 +200,7 @@ if [ "$mode" = pretrain ]; then
   DATA=$work/proc train P "${PRETRAIN_STEPS:-16000}" 0.25 $(( budget - ($(date +%s) - t0) - 40 )) \
     "${SEED:-0}" pfnet-vanilla 0.25 l1
   # P's generator comes back even if the machine's time runs out during F.
-  python3 -c "import sys; from pfnet.inference.shipped import write_shipped; write_shipped(*sys.argv[1:])" \
+  python3 -c "import sys; from pfnet.inference.checkpoint import write_shipped; write_shipped(*sys.argv[1:])" \
     "$work/P/best.pt" "$out/P-best.safetensors"
   log "F: ${FT_STEPS:-8000} steps of the L1 recipe from P's best.pt"
   INIT=$work/P/best.pt train F "${FT_STEPS:-8000}" 0.25 $(( budget - ($(date +%s) - t0) - 40 )) \
@@ -252,7 +252,7 @@ import json, sys, traceback
 from pathlib import Path
 from pfnet.evaluation.scoring import evaluate_predictions
 from pfnet.inference.predict import predict_split
-from pfnet.inference.shipped import write_shipped
+from pfnet.inference.checkpoint import write_shipped
 work, out, device = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
 export, export_which = sys.argv[4].split(), sys.argv[5].split()
 summary = {"exits": (work / "exits").read_text().split("\n"), "runs": {}}

@@ -21,8 +21,9 @@ from pathlib import Path
 
 from pfnet.data import load_split, read_manifest
 from pfnet.evaluation.scoring import evaluate_predictions
+from pfnet.inference.checkpoint import write_shipped
 from pfnet.inference.predict import predict_split
-from pfnet.inference.shipped import SUFFIX, WEIGHTS_DIR, write_shipped
+from pfnet.inference.shipped import SUFFIX, WEIGHTS_DIR
 
 
 def _data_summary(data: Path) -> dict:

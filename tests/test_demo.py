@@ -24,7 +24,7 @@ def _ship_a_512_point_model(folder):
     save_checkpoint(
         checkpoint, {"config": config.to_dict(), "model": build_model(config).state_dict()}
     )
-    pfnet.inference.shipped.write_shipped(
+    pfnet.inference.checkpoint.write_shipped(
         checkpoint, folder / "weights" / f"{pfnet.inference.shipped.DEFAULT_MODEL}.safetensors"
     )
 

@@ -15,14 +15,8 @@ torch = pytest.importorskip("torch")
 import pfnet.inference.shipped  # noqa: E402
 from pfnet.cli import main  # noqa: E402
 from pfnet.errors import ConfigError, DataError  # noqa: E402
-from pfnet.inference.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
-from pfnet.inference.shipped import (  # noqa: E402
-    DEFAULT_MODEL,
-    read_metadata,
-    resolve_checkpoint,
-    shipped_models,
-    write_shipped,
-)
+from pfnet.inference.checkpoint import load_checkpoint, save_checkpoint, write_shipped  # noqa: E402
+from pfnet.inference.shipped import DEFAULT_MODEL, read_metadata, resolve_checkpoint, shipped_models  # noqa: E402
 from pfnet.io.clouds import read_point_cloud, write_ply  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402

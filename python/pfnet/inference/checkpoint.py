@@ -8,10 +8,13 @@ of which loading reads the :class:`~pfnet.models.ModelConfig` keys),
 ``batches_done`` (batches of the current epoch already trained, for a mid-epoch resume),
 ``epoch_sums`` (running loss sums of that epoch), ``best_metric``, ``history`` (per-epoch log
 rows), ``rng`` (torch CPU / CUDA generator states) and ``world_size``.
+
+:func:`write_shipped` turns one into a shipped model file (:mod:`pfnet.inference.shipped`).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import warnings
 import zipfile
@@ -208,3 +211,54 @@ def load_checkpoint(
             f"{broken[0]}): the run diverged; use an earlier checkpoint"
         )
     return model.to(device).eval(), config
+
+
+def write_shipped(
+    checkpoint: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    card: dict[str, Any] | None = None,
+) -> Path:
+    """Write a training checkpoint's generator as a model file (float tensors as float16).
+
+    Args:
+        checkpoint: ``best.pt`` or ``last.pt`` of ``pfnet train``, or a model file (its weights
+            and config are kept and its card replaced: how a model trained elsewhere, e.g. on a
+            GPU machine that returns only small files, gets the card measured here).
+        out: The ``.safetensors`` file to write (atomically).
+        card: The model card to store (data, recipe, metrics), JSON-serialisable.
+    """
+    import torch
+    from safetensors.torch import save_file
+
+    from pfnet.inference import shipped
+    from pfnet.inference.shipped import SUFFIX, load_weights, read_metadata
+
+    out = Path(out)
+    if not out.name.endswith(SUFFIX):
+        raise ConfigError(f"a model file must end in {SUFFIX}, got {out}")
+    if Path(checkpoint).name.endswith(SUFFIX):
+        config, _ = read_metadata(checkpoint)
+        state = {"config": config, "model": load_weights(checkpoint)}
+    else:
+        state = read_checkpoint(checkpoint)
+    tensors = {
+        key: (value.half() if value.is_floating_point() else value).contiguous()
+        for key, value in inference_weights(state).items()
+        if isinstance(value, torch.Tensor)
+    }
+    metadata = {
+        "format": shipped.FORMAT,
+        "version": shipped.VERSION,
+        "config": json.dumps(state["config"]),
+        "card": json.dumps(card or {}),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        save_file(tensors, str(tmp), metadata=metadata)
+        # safetensors creates its file readable by its owner only; give it the permissions
+        # that the umask gives every other file pfnet writes
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o666 & ~umask)
+    return out

@@ -7,7 +7,8 @@ and a model card (data, recipe, measured test metrics). Reading the metadata nee
 torch nor the tensors, so ``pfnet models`` lists models instantly.
 
 Wherever a command takes ``--checkpoint``, it accepts a checkpoint path (``best.pt`` /
-``last.pt`` of ``pfnet train``, or a ``.safetensors`` file written by :func:`write_shipped`)
+``last.pt`` of ``pfnet train``, or a ``.safetensors`` file written by
+:func:`pfnet.inference.checkpoint.write_shipped`)
 or the name of a shipped model; with none, ``complete`` and ``predict`` use
 :data:`DEFAULT_MODEL`.
 """
@@ -191,57 +192,6 @@ def describe(path: Path) -> str:
     if path.parent.resolve() == WEIGHTS_DIR.resolve() and path.name.endswith(SUFFIX):
         return f"shipped:{path.name[: -len(SUFFIX)]}"
     return str(path.resolve())
-
-
-def write_shipped(
-    checkpoint: str | os.PathLike[str],
-    out: str | os.PathLike[str],
-    *,
-    card: dict[str, Any] | None = None,
-) -> Path:
-    """Write a training checkpoint's generator as a model file (float tensors as float16).
-
-    Args:
-        checkpoint: ``best.pt`` or ``last.pt`` of ``pfnet train``, or a model file (its weights
-            and config are kept and its card replaced: how a model trained elsewhere, e.g. on a
-            GPU machine that returns only small files, gets the card measured here).
-        out: The ``.safetensors`` file to write (atomically).
-        card: The model card to store (data, recipe, metrics), JSON-serialisable.
-    """
-    import torch
-    from safetensors.torch import save_file
-
-    from pfnet.inference.checkpoint import inference_weights, read_checkpoint
-    from pfnet.io.files import atomic_path
-
-    out = Path(out)
-    if not out.name.endswith(SUFFIX):
-        raise ConfigError(f"a model file must end in {SUFFIX}, got {out}")
-    if Path(checkpoint).name.endswith(SUFFIX):
-        config, _ = read_metadata(checkpoint)
-        state = {"config": config, "model": load_weights(checkpoint)}
-    else:
-        state = read_checkpoint(checkpoint)
-    tensors = {
-        key: (value.half() if value.is_floating_point() else value).contiguous()
-        for key, value in inference_weights(state).items()
-        if isinstance(value, torch.Tensor)
-    }
-    metadata = {
-        "format": FORMAT,
-        "version": VERSION,
-        "config": json.dumps(state["config"]),
-        "card": json.dumps(card or {}),
-    }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out) as tmp:
-        save_file(tensors, str(tmp), metadata=metadata)
-        # safetensors creates its file readable by its owner only; give it the permissions
-        # that the umask gives every other file pfnet writes
-        umask = os.umask(0)
-        os.umask(umask)
-        tmp.chmod(0o666 & ~umask)
-    return out
 
 
 def load_weights(path: str | os.PathLike[str], device: str = "cpu") -> dict[str, Any]:
