@@ -10,7 +10,8 @@ torch = pytest.importorskip("torch")
 from pfnet.cli import main  # noqa: E402
 from pfnet.errors import DataError  # noqa: E402
 from pfnet.inference.checkpoint import save_checkpoint  # noqa: E402
-from pfnet.inference.completion import complete_clouds, network_input, normalisation, output_paths  # noqa: E402
+from pfnet.inference.completion import complete_clouds, output_paths  # noqa: E402
+from pfnet.inference.predict import network_input, normalisation  # noqa: E402
 from pfnet.io.clouds import read_point_cloud, save_npy, write_ply  # noqa: E402
 from pfnet.models import build_model  # noqa: E402
 from pfnet.training.config import preset_config  # noqa: E402

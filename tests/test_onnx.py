@@ -23,7 +23,8 @@ from pfnet.cli import main  # noqa: E402
 from pfnet.data import load_split, test_protocol_crop  # noqa: E402
 from pfnet.errors import ConfigError, DataError, MissingDependency  # noqa: E402
 from pfnet.inference.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
-from pfnet.inference.onnx_export import TOLERANCE, file_sha256  # noqa: E402
+from pfnet.inference.onnx_export import TOLERANCE  # noqa: E402
+from pfnet.inference.onnx_graph import file_sha256  # noqa: E402
 from pfnet.inference.runtimes import OnnxGenerator, has_module, load_generator  # noqa: E402
 from pfnet.inference.shipped import DEFAULT_MODEL, WEIGHTS_DIR, read_metadata  # noqa: E402
 from pfnet.io.clouds import read_point_cloud, write_ply  # noqa: E402

@@ -8,14 +8,8 @@ import pytest
 from pfnet.cli import main
 from pfnet.errors import ConfigError, DataError
 from pfnet.io.clouds import save_npy, write_ply
-from pfnet.viz.rendering import (
-    GROUND_TRUTH_COLOR,
-    PARTIAL_COLOR,
-    PREDICTION_COLOR,
-    RenderSample,
-    render_gallery,
-    row_label,
-)
+from pfnet.io.palette import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+from pfnet.viz.rendering import RenderSample, render_gallery, row_label
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -225,7 +219,7 @@ def _read(path):
 def test_render_samples_with_a_dash_keep_every_panel_under_its_header(tmp_path, sphere):
     """A row without a prediction ('-') leaves the completion's cell empty: its ground truth
     stays in the ground-truth column, under that header, as in a full row."""
-    from pfnet.viz.rendering import column_titles
+    from pfnet.viz.panels import column_titles
 
     partial, missing = sphere[sphere[:, 0] < 0.5], sphere[sphere[:, 0] >= 0.5]
     save_npy(tmp_path / "p.npy", partial)

@@ -16,7 +16,7 @@ import pytest
 
 from pfnet.cli import main
 from pfnet.io.clouds import save_npy, write_ply
-from pfnet.viz.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+from pfnet.io.palette import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
 
 plotly = pytest.importorskip("plotly")
 

@@ -69,7 +69,7 @@ def onnx_model(
     import onnx
     from onnx import TensorProto, helper
 
-    from pfnet.inference.onnx_export import FORMAT, VERSION
+    from pfnet.inference.onnx_graph import FORMAT, VERSION
     from pfnet.models.config import ModelConfig
 
     config = ModelConfig(n_points=n_points)

@@ -66,7 +66,7 @@ def predict_benchmark(
     """
     from pfnet.data import load_split
     from pfnet.evaluation.protocols import get_protocol, shapenet_crop
-    from pfnet.inference.completion import input_frame, network_input
+    from pfnet.inference.predict import input_frame, network_input
     from pfnet.inference.runtimes import load_generator
     from pfnet.inference.shipped import resolve_checkpoint
     from pfnet.io.clouds import save_npy
@@ -234,7 +234,7 @@ def predict_kitti(
     from pfnet.data import load_split
     from pfnet.data.benchmarks import load_partials
     from pfnet.data.kitti import KITTI_INPUT_POINTS, kitti_input, load_boxes
-    from pfnet.inference.completion import network_input
+    from pfnet.inference.predict import network_input
     from pfnet.inference.runtimes import load_generator
     from pfnet.inference.shipped import resolve_checkpoint
     from pfnet.io.clouds import save_npy

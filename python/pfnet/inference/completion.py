@@ -35,61 +35,13 @@ from typing import Any
 
 import numpy as np
 
-from pfnet.data.sampling import Normalisation, unit_ball
 from pfnet.errors import ConfigError, DataError
-from pfnet.viz.rendering import PARTIAL_COLOR, PREDICTION_COLOR, rgb
+from pfnet.inference.predict import input_frame, network_input, normalisation
+from pfnet.io.palette import PARTIAL_COLOR, PREDICTION_COLOR, rgb
 
 # The PLY outputs carry render's colours: the partial input grey, the prediction yellow.
 PARTIAL_RGB = rgb(PARTIAL_COLOR)
 PREDICTION_RGB = rgb(PREDICTION_COLOR)
-
-
-def normalisation(points: np.ndarray, source: str = "input") -> Normalisation:
-    """Centre at the centroid and scale by the max radius (the scan frame), in float64.
-
-    Raises:
-        DataError: If all points coincide (no scale to normalise by).
-    """
-    transform = unit_ball(points)
-    if transform is None:
-        raise DataError(f"{source}: all {len(points)} points coincide; nothing to complete")
-    return transform
-
-
-def input_frame(points: np.ndarray, frame: str, source: str = "input") -> Any:
-    """The frame a model of ``frame`` sees a partial cloud in, as a
-    :class:`pfnet.data.scan_frame.ScanFrame` (``apply`` / ``invert``).
-
-    Every path that normalises an input by itself (``complete``, ``predict`` of a scan-frame
-    model, the PCN and KITTI protocols) goes through here, so that an ``aligned`` model is
-    turned to the partial's main horizontal axis wherever it runs.
-
-    Raises:
-        DataError: If all points coincide (no scale to normalise by).
-    """
-    from pfnet.data.scan_frame import scan_frame
-
-    normalisation(points, source)
-    return scan_frame(points, aligned=frame == "aligned")
-
-
-def network_input(points: np.ndarray, n_input: int) -> np.ndarray:
-    """Resample a normalised ``(N, 3)`` cloud to exactly ``n_input`` points.
-
-    More points: iterative farthest point sampling from point 0. Fewer: cyclic repetition.
-
-    Returns:
-        float32 ``(n_input, 3)``.
-    """
-    from pfnet.geometry import farthest_point_sample
-
-    points = np.ascontiguousarray(points, dtype=np.float32)
-    n = len(points)
-    if n > n_input:
-        index = farthest_point_sample(points, n_input, start_index=0)
-    else:
-        index = np.arange(n_input) % n
-    return np.ascontiguousarray(points[index], dtype=np.float32)
 
 
 def complete_clouds(
@@ -122,7 +74,7 @@ def complete_clouds(
 
     Raises:
         DataError: The model's output is not finite points of the expected shape
-            (:func:`pfnet.inference.predict.check_detail`).
+            (:func:`pfnet.inference.runtimes.check_detail`).
     """
     from pfnet.data.scan_frame import to_y_up
     from pfnet.inference.predict import predict_missing
@@ -370,7 +322,7 @@ def complete_files(
 
     Raises:
         ConfigError: If ``batch_size < 1``.
-        DataError: The model's output is refused (:func:`pfnet.inference.predict.check_detail`);
+        DataError: The model's output is refused (:func:`pfnet.inference.runtimes.check_detail`);
             the batch it was for is not written.
     """
     if batch_size < 1:

@@ -32,7 +32,6 @@ model's card), ``source`` and ``source_sha256`` (the file exported, see
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import io
 import json
 import logging
@@ -44,21 +43,11 @@ from typing import Any
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
+from pfnet.inference.onnx_graph import FORMAT, VERSION, file_sha256
 
-FORMAT = "pfnet-onnx"
-VERSION = "1"
 TOLERANCE = 1e-4
 """Largest absolute difference, in normalised coordinates (the unit ball), accepted between
 ONNX Runtime's and PyTorch's detail points; measured differences are ~1e-6."""
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """The hex SHA-256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def example_input(n_input: int, batch: int = 2, seed: int = 0) -> np.ndarray:
@@ -170,7 +159,7 @@ def export_onnx(
     Raises:
         ConfigError: ``out`` is not a ``.onnx`` path, or the checkpoint is not found.
         DataError: The model's own output is refused as ``complete`` and ``predict`` refuse
-            it (:func:`pfnet.inference.predict.check_detail`: NaN, infinite or far-out points), or
+            it (:func:`pfnet.inference.runtimes.check_detail`: NaN, infinite or far-out points), or
             the exported graph disagrees with PyTorch beyond :data:`TOLERANCE`.
     """
     import onnx
@@ -231,10 +220,10 @@ def export_onnx(
 
 def _torch_detail(model: Any, partial: np.ndarray, source: Path) -> np.ndarray:
     """PyTorch's detail points for ``partial``, checked as ``complete`` and ``predict`` check
-    a model's output (:func:`pfnet.inference.predict.check_detail`: refused with a DataError)."""
+    a model's output (:func:`pfnet.inference.runtimes.check_detail`: refused with a DataError)."""
     import torch
 
-    from pfnet.inference.predict import check_detail
+    from pfnet.inference.runtimes import check_detail
     from pfnet.models.layers import multi_resolution_indices
 
     index = multi_resolution_indices(partial) if model.multi_resolution else None

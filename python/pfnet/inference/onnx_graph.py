@@ -1,4 +1,6 @@
-"""What an ONNX model file from elsewhere may do, checked before ONNX Runtime loads it.
+"""What a pfnet ONNX file is (its metadata's :data:`FORMAT` and :data:`VERSION`, the digest of
+its source) and what an ONNX model file from elsewhere may do, checked before ONNX Runtime
+loads it.
 
 A pfnet export is a feed-forward graph of a few operators (:data:`ALLOWED_OPS`, those
 torch's exporter writes for every registered model). A file that passes the signature check
@@ -19,13 +21,25 @@ This bounds what a file may make ORT do to the graphs pfnet writes; it is not a 
 
 from __future__ import annotations
 
+import hashlib
 import os
 import struct
 from pathlib import Path
 
 from pfnet.errors import DataError
 
-__all__ = ["ALLOWED_OPS", "MAX_SHAPE_ELEMENTS", "check_graph"]
+__all__ = [
+    "ALLOWED_OPS",
+    "FORMAT",
+    "MAX_SHAPE_ELEMENTS",
+    "VERSION",
+    "check_graph",
+    "file_sha256",
+]
+
+# The metadata of the ONNX files ``pfnet export`` writes (:mod:`pfnet.inference.onnx_export`).
+FORMAT = "pfnet-onnx"
+VERSION = "1"
 
 ALLOWED_OPS = frozenset(
     {
@@ -220,3 +234,12 @@ def _remember(file: Path, constants: dict, name: str, values: list[int] | None) 
             f"make {_shape_elements(values):,} elements (at most {MAX_SHAPE_ELEMENTS:,})"
         )
     constants[name] = values
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """The hex SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -1,4 +1,5 @@
-"""Running a trained model over a data set split with the deterministic test protocol.
+"""Running a trained model over a data set split with the deterministic test protocol, and the
+network's input every path shares (:func:`input_frame`, :func:`network_input`).
 
 ``pfnet predict`` is the command around :func:`predict_split`; ``complete`` uses
 :func:`predict_missing`. Output of :func:`predict_split`, ready for ``pfnet evaluate``::
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from pfnet.data.sampling import Normalisation, unit_ball
 from pfnet.errors import ConfigError, DataError
 from pfnet.evaluation.prediction_folder import (
     check_prediction_folder,
@@ -26,54 +28,55 @@ from pfnet.evaluation.prediction_folder import (
     write_record,
 )
 from pfnet.evaluation.prediction_record import run_files
-
-# A prediction is in the frame of its partial cloud normalised to the unit ball, where the true
-# missing region lies within radius 1 and a working model's points stay within a few radii.
-# A point a thousand radii out is no completion but a broken or forged model (weights that
-# overflow, a graph that outputs 1e30), and mapped back it could leave float32.
-MAX_PREDICTED_RADIUS = 1e3
+from pfnet.inference.runtimes import check_detail
 
 
-def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.ndarray:
-    """A model's output for ``batch`` clouds, checked: float32 ``(batch, n_missing, 3)``,
-    finite, and within :data:`MAX_PREDICTED_RADIUS` of the unit ball's centre.
-
-    Args:
-        detail: What the forward pass returned (a numpy array, or anything a forged model gave).
-        batch: Clouds in the forward pass.
-        n_missing: M, the points the model is configured to predict.
-        source: The checkpoint or model file, named in the message.
-
-    Returns:
-        ``detail`` as a float32 array.
+def normalisation(points: np.ndarray, source: str = "input") -> Normalisation:
+    """Centre at the centroid and scale by the max radius (the scan frame), in float64.
 
     Raises:
-        DataError: Any other output: the model or its weights are broken, nothing is written.
+        DataError: If all points coincide (no scale to normalise by).
     """
-    want = (batch, n_missing, 3)
-    if not isinstance(detail, np.ndarray) or detail.dtype.kind != "f" or detail.shape != want:
-        got = (
-            f"{detail.dtype} {detail.shape}"
-            if isinstance(detail, np.ndarray)
-            else type(detail).__name__
-        )
-        raise DataError(
-            f"model {source} predicted {got}, not float {want} (batch, missing points, xyz); "
-            "it is not a working pfnet model"
-        )
-    if not np.isfinite(detail).all():
-        raise DataError(
-            f"model {source} predicted NaN or infinite coordinates; it is not a working model "
-            "(do its weights overflow?)"
-        )
-    # max |coordinate| rather than the norm: the bound is loose and this cannot overflow
-    furthest = float(np.abs(detail).max(initial=0.0))
-    if furthest > MAX_PREDICTED_RADIUS:
-        raise DataError(
-            f"model {source} predicted a coordinate of {furthest:.3g} in the unit ball's frame "
-            f"(at most {MAX_PREDICTED_RADIUS:g} expected); it is not a working model"
-        )
-    return detail.astype(np.float32, copy=False)  # after the bound: float64 1e300 would warn
+    transform = unit_ball(points)
+    if transform is None:
+        raise DataError(f"{source}: all {len(points)} points coincide; nothing to complete")
+    return transform
+
+
+def input_frame(points: np.ndarray, frame: str, source: str = "input") -> Any:
+    """The frame a model of ``frame`` sees a partial cloud in, as a
+    :class:`pfnet.data.scan_frame.ScanFrame` (``apply`` / ``invert``).
+
+    Every path that normalises an input by itself (``complete``, ``predict`` of a scan-frame
+    model, the PCN and KITTI protocols) goes through here, so that an ``aligned`` model is
+    turned to the partial's main horizontal axis wherever it runs.
+
+    Raises:
+        DataError: If all points coincide (no scale to normalise by).
+    """
+    from pfnet.data.scan_frame import scan_frame
+
+    normalisation(points, source)
+    return scan_frame(points, aligned=frame == "aligned")
+
+
+def network_input(points: np.ndarray, n_input: int) -> np.ndarray:
+    """Resample a normalised ``(N, 3)`` cloud to exactly ``n_input`` points.
+
+    More points: iterative farthest point sampling from point 0. Fewer: cyclic repetition.
+
+    Returns:
+        float32 ``(n_input, 3)``.
+    """
+    from pfnet.geometry import farthest_point_sample
+
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    n = len(points)
+    if n > n_input:
+        index = farthest_point_sample(points, n_input, start_index=0)
+    else:
+        index = np.arange(n_input) % n
+    return np.ascontiguousarray(points[index], dtype=np.float32)
 
 
 def predict_missing(
@@ -95,7 +98,7 @@ def predict_missing(
 
     Raises:
         DataError: The model's output is not ``(batch, M, 3)`` finite points
-            (:func:`check_detail`), or an ONNX model fails to run.
+            (:func:`~pfnet.inference.runtimes.check_detail`), or an ONNX model fails to run.
     """
     from pfnet.inference.runtimes import OnnxGenerator
 
@@ -150,7 +153,7 @@ def predict_split(
     Raises:
         ConfigError: Bad device, batch size or ratio.
         DataError: Unreadable checkpoint or data set, clouds of another size than the model's,
-            or a model output refused by :func:`check_detail`.
+            or a model output refused by :func:`~pfnet.inference.runtimes.check_detail`.
     """
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.inference.runtimes import load_generator
@@ -192,8 +195,6 @@ def predict_split(
             model, np.asarray(partial, dtype=np.float32), batch_size, device, source=checkpoint
         )
     else:  # a scan-frame model sees each partial in its own frame, as `complete` shows it
-        from pfnet.inference.completion import input_frame
-
         frames = [input_frame(p, frame, f"sample {i}") for i, p in enumerate(partial)]
         batch = np.stack([f.apply(p) for f, p in zip(frames, partial, strict=True)])
         detail = predict_missing(model, batch, batch_size, device, source=checkpoint)

@@ -41,6 +41,12 @@ RUNTIME_HELP = (
 INFER_EXTRA = "pip install onnxruntime (the [infer] extra of pfnet-completion)"
 ONNX_SUFFIX = ".onnx"
 
+# A prediction is in the frame of its partial cloud normalised to the unit ball, where the true
+# missing region lies within radius 1 and a working model's points stay within a few radii.
+# A point a thousand radii out is no completion but a broken or forged model (weights that
+# overflow, a graph that outputs 1e30), and mapped back it could leave float32.
+MAX_PREDICTED_RADIUS = 1e3
+
 
 def has_module(name: str) -> bool:
     """Whether ``name`` is an installed module (without importing it). A bare folder of that
@@ -70,8 +76,7 @@ class OnnxGenerator:
     """
 
     def __init__(self, path: str | os.PathLike[str], device: str = "cpu") -> None:
-        from pfnet.inference.onnx_export import FORMAT, VERSION
-        from pfnet.inference.onnx_graph import check_graph
+        from pfnet.inference.onnx_graph import FORMAT, VERSION, check_graph
 
         ort = import_onnxruntime("the ONNX runtime")
         self.path = Path(path)
@@ -150,10 +155,9 @@ class OnnxGenerator:
 
         Raises:
             DataError: The model fails to run or its output is not ``(B, M, 3)`` finite points
-                (:func:`pfnet.inference.predict.check_detail`).
+                (:func:`check_detail`).
         """
         from pfnet.geometry import farthest_point_sample
-        from pfnet.inference.predict import check_detail
 
         partial = np.ascontiguousarray(partial, dtype=np.float32)
         feeds = {"partial": partial}
@@ -265,7 +269,7 @@ def load_generator(
         )
     model = OnnxGenerator(source if is_onnx else onnx_export_of(source), device)
     if not is_onnx:
-        from pfnet.inference.onnx_export import file_sha256
+        from pfnet.inference.onnx_graph import file_sha256
 
         if model.metadata.get("source_sha256") != file_sha256(source):
             raise DataError(
@@ -301,3 +305,45 @@ def onnx_export_of(source: Path) -> Path:
             f"`pfnet export --checkpoint {source} --out {candidate}`"
         )
     return candidate
+
+
+def check_detail(detail: Any, batch: int, n_missing: int, source: Any) -> np.ndarray:
+    """A model's output for ``batch`` clouds, checked: float32 ``(batch, n_missing, 3)``,
+    finite, and within :data:`MAX_PREDICTED_RADIUS` of the unit ball's centre.
+
+    Args:
+        detail: What the forward pass returned (a numpy array, or anything a forged model gave).
+        batch: Clouds in the forward pass.
+        n_missing: M, the points the model is configured to predict.
+        source: The checkpoint or model file, named in the message.
+
+    Returns:
+        ``detail`` as a float32 array.
+
+    Raises:
+        DataError: Any other output: the model or its weights are broken, nothing is written.
+    """
+    want = (batch, n_missing, 3)
+    if not isinstance(detail, np.ndarray) or detail.dtype.kind != "f" or detail.shape != want:
+        got = (
+            f"{detail.dtype} {detail.shape}"
+            if isinstance(detail, np.ndarray)
+            else type(detail).__name__
+        )
+        raise DataError(
+            f"model {source} predicted {got}, not float {want} (batch, missing points, xyz); "
+            "it is not a working pfnet model"
+        )
+    if not np.isfinite(detail).all():
+        raise DataError(
+            f"model {source} predicted NaN or infinite coordinates; it is not a working model "
+            "(do its weights overflow?)"
+        )
+    # max |coordinate| rather than the norm: the bound is loose and this cannot overflow
+    furthest = float(np.abs(detail).max(initial=0.0))
+    if furthest > MAX_PREDICTED_RADIUS:
+        raise DataError(
+            f"model {source} predicted a coordinate of {furthest:.3g} in the unit ball's frame "
+            f"(at most {MAX_PREDICTED_RADIUS:g} expected); it is not a working model"
+        )
+    return detail.astype(np.float32, copy=False)  # after the bound: float64 1e300 would warn

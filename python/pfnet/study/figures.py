@@ -81,13 +81,9 @@ def render_comparison(
     """The same test shapes (25 % missing) completed by each model, ground truth last."""
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.io.clouds import read_point_cloud
+    from pfnet.io.palette import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
     from pfnet.viz.gallery import pick_gallery
-    from pfnet.viz.rendering import (
-        GROUND_TRUTH_COLOR,
-        PARTIAL_COLOR,
-        PREDICTION_COLOR,
-        render_panels,
-    )
+    from pfnet.viz.rendering import render_panels
 
     # One seed's predictions (the first): an average of seeds is no one model's output.
     seed = results["seeds"][0]

@@ -71,12 +71,8 @@ def render_completions(
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.evaluation.scoring import find_prediction_files
     from pfnet.io.clouds import read_point_cloud
-    from pfnet.viz.rendering import (
-        GROUND_TRUTH_COLOR,
-        PARTIAL_COLOR,
-        PREDICTION_COLOR,
-        render_panels,
-    )
+    from pfnet.io.palette import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+    from pfnet.viz.rendering import render_panels
 
     clouds = load_split(data_dir, split)
     index = {
@@ -168,12 +164,8 @@ def render_benchmark_gallery(
     from pfnet.evaluation.protocols import get_protocol, shapenet_crop
     from pfnet.evaluation.scoring import find_prediction_files
     from pfnet.io.clouds import read_point_cloud
-    from pfnet.viz.rendering import (
-        GROUND_TRUTH_COLOR,
-        PARTIAL_COLOR,
-        PREDICTION_COLOR,
-        render_panels,
-    )
+    from pfnet.io.palette import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+    from pfnet.viz.rendering import render_panels
 
     chosen = get_protocol(protocol)
     keys = pick_benchmark_gallery(keys, count, chosen.views)

@@ -22,24 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
-
-PARTIAL_COLOR = "#9a9a9a"
-"""Grey: the incomplete input (paper, Figs. 7-9)."""
-PREDICTION_COLOR = "#f2c200"
-"""Yellow: the predicted missing region."""
-GROUND_TRUTH_COLOR = "#2f6fd0"
-"""Blue: the complete ground-truth cloud."""
-
-
-Layer = tuple[np.ndarray, "str | np.ndarray"]
-"""A cloud and its colour: ``"#rrggbb"``, or ``(N, 3)`` floats in ``[0, 1]``, one per point."""
-Panel = tuple[str, list[Layer]]
-"""A column title and the layers drawn in that panel, back to front."""
-
-
-def rgb(color: str) -> tuple[int, int, int]:
-    """``"#rrggbb"`` as an ``(r, g, b)`` tuple of 0-255 integers."""
-    return (int(color[1:3], 16), int(color[3:5], 16), int(color[5:7], 16))
+from pfnet.io.palette import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+from pfnet.viz.panels import Panel, column_titles
 
 
 @dataclass
@@ -102,31 +86,6 @@ def own_color_panel(cloud: np.ndarray, colors: np.ndarray) -> Panel:
     else:
         title = OWN_COLORS_TITLE
     return title, layers
-
-
-def column_titles(rows: list[tuple[str, list[Panel]]]) -> list[str]:
-    """The columns of ``rows``: every panel title once, each row's titles in that row's order.
-
-    A title that an earlier row lacks goes before the next of its row's titles already placed
-    (after the previous one if none follows), so a row without a prediction does not move the
-    ground truth under the prediction's column: rows ``[input, ground truth]`` then
-    ``[input, completion, ground truth]`` give ``[input, completion, ground truth]``.
-    """
-    titles: list[str] = []
-    for _, panels in rows:
-        names = [name for name, _ in panels]
-        for i, name in enumerate(names):
-            if name in titles:
-                continue
-            after = [n for n in names[i + 1 :] if n in titles]
-            before = [n for n in names[:i] if n in titles]
-            if after:
-                titles.insert(titles.index(after[0]), name)
-            elif before:
-                titles.insert(titles.index(before[-1]) + 1, name)
-            else:
-                titles.append(name)
-    return titles
 
 
 def _panels(sample: RenderSample) -> list[tuple[str, list[tuple[np.ndarray, str]]]]:

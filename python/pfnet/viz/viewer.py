@@ -1,6 +1,6 @@
 """An interactive gallery: one self-contained HTML file (plotly, its JavaScript inlined).
 
-The same rows of panels as the PNG galleries (:func:`pfnet.render.render_panels`): per
+The same rows of panels as the PNG galleries (:func:`pfnet.viz.rendering.render_panels`): per
 sample, the panels *input* (grey), *completion* (grey + yellow) and *ground truth* (blue),
 side by side, each a rotatable 3D scene (drag to turn, scroll to zoom). A menu picks the
 sample; the legend has one entry per layer (partial input, prediction, ground truth) that
@@ -29,7 +29,7 @@ PANEL_PIXELS = 420
 
 def _layer_names() -> dict[str, str]:
     """Legend entry of each of the paper's colours."""
-    from pfnet.viz.rendering import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
+    from pfnet.io.palette import GROUND_TRUTH_COLOR, PARTIAL_COLOR, PREDICTION_COLOR
 
     return {
         PARTIAL_COLOR: "partial input",
@@ -72,7 +72,7 @@ def write_viewer(
     from pfnet.errors import MissingDependency
     from pfnet.inference.runtimes import has_module
     from pfnet.io.files import atomic_path, output_path
-    from pfnet.viz.rendering import column_titles as columns_of
+    from pfnet.viz.panels import column_titles as columns_of
 
     if not has_module("plotly"):
         raise MissingDependency(f"the HTML viewer needs plotly, not installed: {VIEWER_EXTRA}")
