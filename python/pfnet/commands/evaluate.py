@@ -28,8 +28,8 @@ from pfnet.evaluation.scoring import (
     SCALE,
     Evaluation,
     evaluate_predictions,
-    render_evaluation_gallery,
 )
+from pfnet.viz.gallery import render_evaluation_gallery
 
 HELP = "Score a folder of predicted point clouds against a data set (Chamfer ×1000, F-score)."
 PROTOCOL_NAMES = ("pfnet", "pcn", "shapenet55", "shapenet34", "kitti")

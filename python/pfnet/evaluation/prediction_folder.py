@@ -260,7 +260,7 @@ def _unlock(out: Path) -> None:
 
 def write_record(
     out: Path,
-    checkpoint: Any,
+    checkpoint: str,
     data_dir: str | os.PathLike[str],
     split: str,
     files: dict[str, Any],
@@ -274,17 +274,17 @@ def write_record(
 ) -> dict[str, Any]:
     """Write the ``predictions.json`` of a finished prediction run into ``out``; returns it.
 
-    It names the checkpoint, data set, split (and its file's digest), the category folders,
+    It names the checkpoint (``checkpoint``, as :func:`pfnet.inference.shipped.describe` names a
+    model file), data set, split (and its file's digest), the category folders,
     the protocol and the model; ``extra`` keys (``skipped``...) come after the sample count,
     and last the files the run wrote (:func:`~pfnet.evaluation.prediction_record.run_files`; which
     ``--overwrite`` may remove).
     """
     from pfnet.data.digests import loaded_split_digest
-    from pfnet.inference.shipped import describe
 
     info = {
         "complete": True,
-        "checkpoint": describe(checkpoint),
+        "checkpoint": checkpoint,
         "data": str(Path(data_dir).resolve()),
         "split": split,
         # of the bytes predict read, when it read them: evaluate refuses other clouds

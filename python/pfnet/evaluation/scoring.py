@@ -270,33 +270,3 @@ def stack_if_equal(clouds: list[np.ndarray]) -> np.ndarray | list[np.ndarray]:
     if len({len(c) for c in clouds}) == 1:
         return np.stack(clouds)
     return clouds
-
-
-def render_evaluation_gallery(
-    out: Path,
-    evaluation: Evaluation,
-    pred_dir: Path,
-    data_dir: Path,
-    *,
-    split: str,
-    missing_ratio: float,
-    count: int,
-    columns: dict[str, Path] | None = None,
-) -> Path:
-    """Render ``count`` scored samples (spread over the categories) as partial/pred/gt rows.
-
-    ``columns`` (title -> prediction folder) draws several models' completions of the same
-    samples side by side instead of ``pred_dir``'s alone.
-    """
-    from pfnet.viz.gallery import pick_gallery, render_completions
-
-    chosen = pick_gallery(evaluation.categories, count)
-    return render_completions(
-        out,
-        data_dir,
-        columns or {"completion": pred_dir},
-        split=split,
-        missing_ratio=missing_ratio,
-        keys=[(evaluation.categories[k], evaluation.names[k]) for k in chosen],
-        title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing",
-    )

@@ -68,7 +68,7 @@ def predict_benchmark(
     from pfnet.evaluation.protocols import get_protocol, shapenet_crop
     from pfnet.inference.predict import input_frame, network_input
     from pfnet.inference.runtimes import load_generator
-    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.inference.shipped import describe, resolve_checkpoint
     from pfnet.io.clouds import save_npy
     from pfnet.io.files import refuse_overlap
 
@@ -173,7 +173,7 @@ def predict_benchmark(
         )
     return write_record(
         out,
-        checkpoint,
+        describe(checkpoint),
         data_dir,
         split,
         run_files(clouds.category, clouds.name, chosen.suffixes, skipped=skipped_keys),
@@ -236,7 +236,7 @@ def predict_kitti(
     from pfnet.data.kitti import KITTI_INPUT_POINTS, kitti_input, load_boxes
     from pfnet.inference.predict import network_input
     from pfnet.inference.runtimes import load_generator
-    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.inference.shipped import describe, resolve_checkpoint
     from pfnet.io.clouds import save_npy
     from pfnet.io.files import refuse_overlap
 
@@ -280,7 +280,7 @@ def predict_kitti(
         n_predicted = int(detail.shape[1])
     return write_record(
         out,
-        checkpoint,
+        describe(checkpoint),
         data_dir,
         split,
         files,

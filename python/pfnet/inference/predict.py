@@ -157,7 +157,7 @@ def predict_split(
     """
     from pfnet.data import load_split, test_protocol_crop
     from pfnet.inference.runtimes import load_generator
-    from pfnet.inference.shipped import resolve_checkpoint
+    from pfnet.inference.shipped import describe, resolve_checkpoint
     from pfnet.io.clouds import save_npy
     from pfnet.io.files import refuse_overlap
 
@@ -215,7 +215,7 @@ def predict_split(
         save_npy(out / str(cat) / f"{name}.npy", cloud)
     return write_record(
         out,
-        checkpoint,
+        describe(checkpoint),
         data_dir,
         split,
         files,

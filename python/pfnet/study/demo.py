@@ -178,13 +178,14 @@ def run_demo(
         raise ConfigError(f"epochs must be at least 1, got {epochs}")
     from pfnet.data import prepare_dataset, read_manifest
     from pfnet.evaluation.reports import format_table, write_json
-    from pfnet.evaluation.scoring import evaluate_predictions, render_evaluation_gallery
+    from pfnet.evaluation.scoring import evaluate_predictions
     from pfnet.inference.devices import inference_device
     from pfnet.inference.predict import predict_split
     from pfnet.inference.shipped import describe
     from pfnet.io.files import other_kind
     from pfnet.training import train
     from pfnet.training.config import preset_config
+    from pfnet.viz.gallery import render_evaluation_gallery
 
     device = inference_device(device)
     out = Path(out)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import DataError
+from pfnet.evaluation.scoring import Evaluation
 
 DEFAULT_ROWS = 8
 """Rows of a ``--gallery`` when ``--gallery-count`` is not given."""
@@ -219,3 +220,31 @@ def render_benchmark_gallery(
     shown = "" if missing_ratio is None else f", {missing_ratio:.0%} missing"
     title = f"{Path(pred_dir).name}: {chosen.name}, {split}{shown}"
     return render_panels(out, rows, views=1, title=title)
+
+
+def render_evaluation_gallery(
+    out: Path,
+    evaluation: Evaluation,
+    pred_dir: Path,
+    data_dir: Path,
+    *,
+    split: str,
+    missing_ratio: float,
+    count: int,
+    columns: dict[str, Path] | None = None,
+) -> Path:
+    """Render ``count`` scored samples (spread over the categories) as partial/pred/gt rows.
+
+    ``columns`` (title -> prediction folder) draws several models' completions of the same
+    samples side by side instead of ``pred_dir``'s alone.
+    """
+    chosen = pick_gallery(evaluation.categories, count)
+    return render_completions(
+        out,
+        data_dir,
+        columns or {"completion": pred_dir},
+        split=split,
+        missing_ratio=missing_ratio,
+        keys=[(evaluation.categories[k], evaluation.names[k]) for k in chosen],
+        title=f"{pred_dir.name}: {split}, {missing_ratio:.0%} missing",
+    )
