@@ -155,6 +155,7 @@ def _run(args: argparse.Namespace) -> int:
         region=args.region,
         pred_is_complete=args.pred_is_complete,
         workers=args.workers,
+        notes=_say_skipped,
     )
     summary = summarize(evaluation.per_sample, evaluation.categories, scale=float(SCALE))
     n_scored = len(evaluation.categories)
@@ -268,6 +269,7 @@ def _run_benchmark(args: argparse.Namespace, protocol: str) -> int:
         split=args.split,
         missing_ratio=ratio,
         workers=args.workers,
+        notes=_say_skipped,
     )
     report = evaluation.report
     shown = "" if report["missing_ratio"] is None else f", {report['missing_ratio']:.0%} missing"
@@ -293,6 +295,7 @@ def _run_kitti(args: argparse.Namespace) -> int:
         reference_category=args.reference_category,
         split=args.split,
         workers=args.workers,
+        notes=_say_skipped,
     )
     report = evaluation.report
     print(
@@ -467,3 +470,8 @@ def _check_benchmark_ratio(chosen: Protocol, ratio: float | None) -> None:
         raise ConfigError(
             f"--missing-ratio of the {chosen.name} protocol is one of {listed}, got {ratio:g}"
         )
+
+
+def _say_skipped(line: str) -> None:
+    """A prediction folder's category folder that could not be listed, on stderr."""
+    print(line, file=sys.stderr)

@@ -163,7 +163,7 @@ def _run_benchmark(args: argparse.Namespace) -> int:
             args.out,
             args.data,
             name,
-            keys=sorted(find_prediction_files(args.out, quiet=True)),
+            keys=sorted(find_prediction_files(args.out)),
             count=args.gallery_count,
             split=args.split,
             missing_ratio=ratio,

@@ -208,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
                 procedural=False,
                 default=SWEETHOME3D_PATH,
                 hint="sudo apt-get install sweethome3d-furniture",
+                say=print,
             )
         results = reproduce(
             out,

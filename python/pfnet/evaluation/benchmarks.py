@@ -17,6 +17,7 @@ from pfnet.evaluation.scoring import (
     MAX_WORKERS,
     SCALE,
     Evaluation,
+    Notes,
     read_predictions,
     refuse_oversized,
     stack_if_equal,
@@ -31,6 +32,7 @@ def evaluate_benchmark(
     split: str = "test",
     missing_ratio: float | None = None,
     workers: int | None = None,
+    notes: Notes = None,
 ) -> Evaluation:
     """Score whole completions with a benchmark protocol (``pcn``, ``shapenet55``).
 
@@ -51,6 +53,8 @@ def evaluate_benchmark(
         missing_ratio: ``shapenet55`` only: the ratio the inputs were cropped with (recorded
             in the report; the ground truth is the complete cloud whatever the ratio).
         workers: Threads reading files.
+        notes: Called with a line for each category folder that cannot be listed (it is
+            skipped; ``pfnet evaluate`` prints the line); none by default.
 
     Raises:
         ConfigError: Unknown protocol, or a ratio the protocol does not take.
@@ -86,7 +90,7 @@ def evaluate_benchmark(
         for key in chosen.sample_keys(str(cat), str(name)):
             keys.append(key)
             owner.append(i)
-    present, loaded, missing, unmatched = read_predictions(pred_dir, keys, workers)
+    present, loaded, missing, unmatched = read_predictions(pred_dir, keys, workers, notes)
     preds, gts, scored, unreadable, reasons = [], [], [], [], []
     for k, cloud in zip(present, loaded, strict=True):
         cloud = refuse_oversized(cloud, keys[k])
@@ -197,6 +201,7 @@ def evaluate_kitti(
     reference_category: str = "car",
     split: str = "test",
     workers: int | None = None,
+    notes: Notes = None,
 ) -> Evaluation:
     """Score completions of the KITTI cars by Fidelity and MMD (PoinTr ``KITTI_metric.py``).
 
@@ -215,7 +220,8 @@ def evaluate_kitti(
 
     Both ×1000 per category, overall the unweighted mean of the categories (one: ``car``).
     All completions, whatever their sizes, go to the Rust core in one call, which builds the
-    reference cars' trees once.
+    reference cars' trees once. A category folder that cannot be listed is skipped and named to
+    ``notes``.
 
     Raises:
         DataError: Missing folders, a data set without KITTI's boxes, unusable references,
@@ -239,7 +245,7 @@ def evaluate_kitti(
     partials = load_partials(data_dir, split, len(cars))
     refs, ref_labels = load_references(references, reference_category)
     keys = [f"{c}/{n}" for c, n in zip(cars.category, cars.name, strict=True)]
-    present, loaded, missing, unmatched = read_predictions(pred_dir, keys, workers)
+    present, loaded, missing, unmatched = read_predictions(pred_dir, keys, workers, notes)
     inputs, completions, scored, unreadable, reasons = [], [], [], [], []
     for k, cloud in zip(present, loaded, strict=True):
         cloud = refuse_oversized(cloud, keys[k])

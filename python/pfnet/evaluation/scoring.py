@@ -24,7 +24,7 @@ by :mod:`pfnet.evaluation.benchmarks`; the record ``predictions.json`` is read b
 from __future__ import annotations
 
 import os
-import sys
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.errors import ConfigError, DataError
+
+Notes = Callable[[str], None] | None
+"""What a caller hears of a folder skipped while scoring (the command prints it)."""
 
 PREDICTION_SUFFIXES: tuple[str, ...] = (".npy", ".ply", ".pcd", ".xyz", ".pts", ".txt")
 """Suffixes a prediction file may have, in the order they are looked for."""
@@ -84,11 +87,11 @@ class Evaluation:
     labels: dict[str, list[str]] = field(default_factory=dict)
 
 
-def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, Path]:
+def find_prediction_files(pred_dir: Path, *, notes: Notes = None) -> dict[str, Path]:
     """Map ``<category>/<name>`` to its prediction file (a suffix of PREDICTION_SUFFIXES).
 
-    A category entry that cannot be listed (a symlink loop, no permission) is named on
-    stderr (unless ``quiet``) and skipped; its samples then count as missing.
+    A category entry that cannot be listed (a symlink loop, no permission) is skipped, and
+    named to ``notes`` if given; its samples then count as missing.
 
     Raises:
         DataError: Two files for one sample (``x.npy`` and ``x.ply``), naming both: which
@@ -104,8 +107,8 @@ def find_prediction_files(pred_dir: Path, *, quiet: bool = False) -> dict[str, P
                 with os.scandir(cat.path) as listing:
                     entries = list(listing)
             except OSError as err:
-                if not quiet:
-                    print(f"skipped {cat.path}: {err.strerror or err}", file=sys.stderr)
+                if notes is not None:
+                    notes(f"skipped {cat.path}: {err.strerror or err}")
                 continue
             for entry in entries:
                 stem, suffix = os.path.splitext(entry.name)
@@ -142,6 +145,7 @@ def evaluate_predictions(
     pred_is_complete: bool = False,
     f_threshold: float = 0.01,
     workers: int | None = None,
+    notes: Notes = None,
 ) -> Evaluation:
     """Score the prediction files in ``pred_dir`` against split ``split`` of ``data_dir``.
 
@@ -155,6 +159,8 @@ def evaluate_predictions(
             scored as they are instead of being merged with the partial input.
         f_threshold: Distance threshold of the F-score.
         workers: Threads reading files (default: ``min(8, cpu count + 4)``).
+        notes: Called with a line for each category folder that cannot be listed (it is
+            skipped; ``pfnet evaluate`` prints the line); none by default.
 
     Returns:
         An :class:`Evaluation`; samples without a usable file are listed, not scored.
@@ -182,7 +188,7 @@ def evaluate_predictions(
     sample_keys = [f"{c}/{n}" for c, n in zip(clouds.category, clouds.name, strict=True)]
     partial, removed = test_protocol_crop(points, missing_ratio)
 
-    present, loaded, missing, unmatched = read_predictions(pred_dir, sample_keys, workers)
+    present, loaded, missing, unmatched = read_predictions(pred_dir, sample_keys, workers, notes)
     preds, gts, scored, unreadable, reasons = [], [], [], [], []
     for i, cloud in zip(present, loaded, strict=True):
         if isinstance(cloud, str):
@@ -235,15 +241,16 @@ def evaluate_predictions(
 
 
 def read_predictions(
-    pred_dir: Path, sample_keys: list[str], workers: int | None
+    pred_dir: Path, sample_keys: list[str], workers: int | None, notes: Notes = None
 ) -> tuple[list[int], list, list[str], list[str]]:
-    """Find and read the prediction file of each key (in a thread pool).
+    """Find and read the prediction file of each key (in a thread pool); a category folder
+    that cannot be listed is named to ``notes`` (:func:`find_prediction_files`).
 
     Returns:
         The indices of the keys with a file, what was read for each (an array, or the
         reason it could not be used), the keys without a file, and files matching no key.
     """
-    files = find_prediction_files(pred_dir)
+    files = find_prediction_files(pred_dir, notes=notes)
     wanted = set(sample_keys)
     unmatched = sorted(str(p) for k, p in files.items() if k not in wanted)
     present = [i for i, key in enumerate(sample_keys) if key in files]

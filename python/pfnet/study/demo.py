@@ -34,10 +34,16 @@ MAX_MINUTES = 7 * 24 * 60
 """The longest time budget: a week."""
 
 
-def choose_source(source: Path | None, *, procedural: bool = False) -> Path | None:
-    """The model folder to use, or None for procedural shapes (with a hint printed)."""
+def _quiet(_line: str) -> None:
+    """The default of ``say``: a library call prints nothing."""
+
+
+def choose_source(
+    source: Path | None, *, procedural: bool = False, say: Callable[[str], None] = _quiet
+) -> Path | None:
+    """The model folder to use, or None for procedural shapes (with a hint to ``say``)."""
     return pick_source(
-        source, procedural=procedural, default=SWEETHOME3D_FURNITURE, hint=INSTALL_HINT
+        source, procedural=procedural, default=SWEETHOME3D_FURNITURE, hint=INSTALL_HINT, say=say
     )
 
 
@@ -77,10 +83,6 @@ def epochs_for_budget(left_s: float, epoch_s: float, preset_epochs: int) -> int:
     """
     more = math.floor(left_s / max(epoch_s, 1e-3)) if left_s > 0 else 0
     return max(2, min(3 * preset_epochs, 2 + more))
-
-
-def _quiet(_line: str) -> None:
-    """The default of ``say``: a library call prints nothing."""
 
 
 @dataclass
@@ -201,7 +203,7 @@ def run_demo(
     started = time.monotonic()
 
     say("\n[1/6] data set")
-    source = choose_source(source, procedural=procedural)
+    source = choose_source(source, procedural=procedural, say=say)
     if (data_dir / "manifest.json").is_file():
         say(f"reusing the data set in {data_dir} (delete it to rebuild)")
     else:
@@ -241,7 +243,7 @@ def run_demo(
     ratio = info["protocol"]["missing_ratio"]
 
     say("\n[4/6] evaluating")
-    evaluation = evaluate_predictions(pred_dir, data_dir, missing_ratio=ratio)
+    evaluation = evaluate_predictions(pred_dir, data_dir, missing_ratio=ratio, notes=say)
     say("Pred→GT, GT→Pred, CD-L2, CD-L1 ×1000; F-score at distance 0.01 (missing region)")
     say(format_table(evaluation))
     metrics_path = out / "metrics.json"
@@ -254,7 +256,7 @@ def run_demo(
     if shipped is not None:
         shipped_dir = out / "predictions-shipped"
         predict_split(shipped, data_dir, shipped_dir, device=device, missing_ratio=ratio)
-        shipped_eval = evaluate_predictions(shipped_dir, data_dir, missing_ratio=ratio)
+        shipped_eval = evaluate_predictions(shipped_dir, data_dir, missing_ratio=ratio, notes=say)
         write_json(out / "metrics-shipped.json", shipped_eval.report)
         shipped_mean = shipped_eval.report["mean"]
         columns[f"shipped {describe(shipped).removeprefix('shipped:')}"] = shipped_dir

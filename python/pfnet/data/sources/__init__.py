@@ -9,7 +9,7 @@ the names); :mod:`pfnet.data.sources.registry` is the list of sources, and impor
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -87,9 +87,17 @@ class Geometry:
     faces: np.ndarray | None = None
 
 
-def pick_source(source: Path | None, *, procedural: bool, default: Path, hint: str) -> Path | None:
+def pick_source(
+    source: Path | None,
+    *,
+    procedural: bool,
+    default: Path,
+    hint: str,
+    say: Callable[[str], None],
+) -> Path | None:
     """The model source a command uses: ``source`` if given, else ``default`` when it holds
-    catalogues, else ``None`` for procedural shapes (saying so, and how to get real data).
+    catalogues, else ``None`` for procedural shapes (saying so to ``say``, with how to get
+    real data: the command prints it).
 
     Raises:
         ConfigError: ``source`` does not exist.
@@ -102,7 +110,7 @@ def pick_source(source: Path | None, *, procedural: bool, default: Path, hint: s
         return Path(source)
     if default.is_dir() and any(default.glob("*.sh3f")):
         return default
-    print(
+    say(
         f"SweetHome3D furniture not found in {default}; for real data run\n"
         f"    {hint}\nand start again. Using procedural shapes now."
     )
