@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
                 procedural=False,
                 default=SWEETHOME3D_PATH,
                 hint="sudo apt-get install sweethome3d-furniture",
-                say=print,
+                say=_say,
             )
         results = reproduce(
             out,
@@ -230,6 +230,8 @@ def run(args: argparse.Namespace) -> int:
             lengths=sorted(args.steps) if args.steps else None,
             train_data=args.train_data,
             jobs=args.jobs,
+            log=_say,
+            warn=_warn,
         )
     published = out
     if args.publish is not None:
@@ -241,3 +243,13 @@ def run(args: argparse.Namespace) -> int:
     print(f"results in {out}; report {published / 'results.md'}")
     sys.stdout.flush()
     return 0
+
+
+def _say(line: str) -> None:
+    """A line of the study's progress (from the runs' own processes too: a module's function)."""
+    print(line, flush=True)
+
+
+def _warn(line: str) -> None:
+    """A run's error, from the process it failed in."""
+    print(line, file=sys.stderr, flush=True)

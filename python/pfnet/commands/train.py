@@ -240,6 +240,7 @@ def run(args: argparse.Namespace) -> int:
     if args.preset is None and args.config is None and not args.resume:
         print(f"pfnet train: note: {DEFAULT_PRESET_NOTE}", file=sys.stderr)
     from pfnet.training.loop import train
+    from pfnet.training.signals import STOP_NOTICE
 
     threads = torch_threads(args.threads)
     if threads is not None:
@@ -262,6 +263,8 @@ def run(args: argparse.Namespace) -> int:
         resume=args.resume,
         val_data=args.val_data,
         notes=lambda note: print(f"pfnet train: note: {note}", file=sys.stderr),
+        say=lambda line: print(line, file=sys.stderr),
+        on_stop=lambda: print(f"\npfnet train: {STOP_NOTICE}", file=sys.stderr),
     )
     if summary["world_size"] > 1:
         import os

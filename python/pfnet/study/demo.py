@@ -187,6 +187,7 @@ def run_demo(
     from pfnet.io.files import other_kind
     from pfnet.training import train
     from pfnet.training.config import preset_config
+    from pfnet.training.signals import STOP_NOTICE
     from pfnet.viz.gallery import render_evaluation_gallery
 
     device = inference_device(device)
@@ -223,19 +224,22 @@ def run_demo(
     say(f"\n[2/6] training the small PF-Net preset on {device}")
     config = preset_config("small").replace(seed=seed)
     say(f"run folder {run_dir}")
+    heard = {"say": say, "on_stop": lambda: say(f"\n{STOP_NOTICE}")}  # the training's lines
     if epochs is not None:
-        train(config.replace(epochs=epochs), data_dir, run_dir, device=device)
+        train(config.replace(epochs=epochs), data_dir, run_dir, device=device, **heard)
     else:
         budget = minutes * 60.0
         t0 = time.monotonic()
         # Two epochs first: the first one pays for start-up (imports, data-loader workers,
         # CUDA initialisation), the second one's wall time is what every later epoch costs.
-        summary = train(config.replace(epochs=2), data_dir, run_dir, device=device)
+        summary = train(config.replace(epochs=2), data_dir, run_dir, device=device, **heard)
         per_epoch = float(summary["final"].get("time_s") or 0.0)
         total = epochs_for_budget(budget - (time.monotonic() - t0), per_epoch, config.epochs)
         say(f"an epoch takes {per_epoch:.1f} s after start-up: training {total} epochs in all")
         if total > 2:
-            train(config.replace(epochs=total), data_dir, run_dir, device=device, resume=True)
+            train(
+                config.replace(epochs=total), data_dir, run_dir, device=device, resume=True, **heard
+            )
     checkpoint = find_checkpoint(run_dir)
 
     say("\n[3/6] predicting the test split (deterministic test protocol)")

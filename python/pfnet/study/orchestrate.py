@@ -28,6 +28,10 @@ from pfnet.study.runs import (
 )
 
 
+def _quiet(_line: str) -> None:
+    """The default of ``log`` and ``warn``: a library call prints nothing."""
+
+
 def reproduce(
     out: Path,
     *,
@@ -44,7 +48,8 @@ def reproduce(
     lengths: Sequence[int] | None = None,
     train_data: Path | None = None,
     jobs: int = 1,
-    log: Callable[[str], None] = print,
+    log: Callable[[str], None] = _quiet,
+    warn: Callable[[str], None] = _quiet,
 ) -> dict[str, Any]:
     """Run the study into ``out`` (see the module docstring); returns ``results.json``.
 
@@ -53,6 +58,10 @@ def reproduce(
     trains every run on that data set's train split (validation and test stay ``data``'s).
     ``jobs`` runs up to that many trainings side by side, each in its own process, on the
     one device (a small network's step leaves most of a GPU idle).
+
+    ``log`` is called with each line of the study's progress, ``warn`` with the error of a run
+    that failed in a process of its own (``pfnet reproduce`` prints them); with ``jobs > 1``
+    they go to those processes, so they must be functions of a module (or ``print``).
     """
     from pfnet.data import prepare_dataset, read_manifest
 
@@ -94,7 +103,7 @@ def reproduce(
     run_threads = None  # each run's torch threads when they are not this process's
     if jobs > 1:
         run_threads = train_side_by_side(
-            runs, base, data_dir, out / "runs", device, jobs, train_data, log
+            runs, base, data_dir, out / "runs", device, jobs, train_data, log, warn
         )
     for k, run in enumerate(runs, 1):
         run_dir = out / "runs" / run.name
@@ -140,6 +149,7 @@ def train_side_by_side(
     jobs: int,
     train_data: Path | None,
     log: Callable[[str], None],
+    warn: Callable[[str], None],
 ) -> int:
     """Train ``runs`` with up to ``jobs`` processes at a time (each :func:`train_run`).
 
@@ -175,6 +185,8 @@ def train_side_by_side(
                         train_data,
                         f"[{k}/{len(runs)}] ",
                         threads,
+                        log,
+                        warn,
                     ),
                     name=run.name,
                 )
@@ -213,9 +225,12 @@ def _train_in_process(
     train_data: Path | None,
     prefix: str,
     threads: int,
+    log: Callable[[str], None] = _quiet,
+    warn: Callable[[str], None] = _quiet,
 ) -> None:
     """One run of :func:`train_side_by_side` in its own process, on ``threads`` torch threads
-    (:func:`pfnet.processes.threads_per_process`); its exit code says how it went."""
+    (:func:`pfnet.processes.threads_per_process`); its exit code says how it went, ``log``
+    hears its progress and ``warn`` its error."""
     import sys
 
     import torch
@@ -231,14 +246,14 @@ def _train_in_process(
             data_dir,
             run_dir,
             device,
-            lambda msg: print(prefix + msg, flush=True),
+            lambda msg: log(prefix + msg),
             train_data,
             progress=False,
         )
     except KeyboardInterrupt:
         sys.exit(130)
     except (PfnetError, OSError, MemoryError) as err:  # the CLI's one-line errors
-        print(f"{prefix}{run.name}: error: {err}", file=sys.stderr, flush=True)
+        warn(f"{prefix}{run.name}: error: {err}")
         sys.exit(1)
 
 

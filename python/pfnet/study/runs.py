@@ -212,9 +212,11 @@ def train_run(
     """
     from pfnet.training import train
     from pfnet.training.config import RESUMABLE_FIELDS, TrainConfig
+    from pfnet.training.signals import STOP_NOTICE
 
     config = run_config(run, base)
-    sources = {} if train_data is None else {"val_data": data_dir}
+    options = {} if train_data is None else {"val_data": data_dir}
+    options |= {"say": log, "on_stop": lambda: log(STOP_NOTICE)}  # the training's lines
     data_dir = data_dir if train_data is None else train_data
     length = f"{config.epochs} epochs" if config.steps is None else f"{config.steps} steps"
     done = completed_epochs(run_dir)
@@ -255,11 +257,11 @@ def train_run(
         of = config.epochs if config.steps is None else f"a run of {length}"
         log(f"{run.name}: resuming at epoch {done + 1} of {of}")
         summary = train(
-            config, data_dir, run_dir, device=device, resume=True, progress=progress, **sources
+            config, data_dir, run_dir, device=device, resume=True, progress=progress, **options
         )
     else:
         log(f"{run.name}: training {length} on {device}")
-        summary = train(config, data_dir, run_dir, device=device, progress=progress, **sources)
+        summary = train(config, data_dir, run_dir, device=device, progress=progress, **options)
     if summary["interrupted"]:
         raise KeyboardInterrupt
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import re
-import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -46,14 +46,18 @@ class DistContext:
 
 
 def resolve_device(
-    device: str | torch.device, local_rank: int = 0, local_world_size: int = 1
+    device: str | torch.device,
+    local_rank: int = 0,
+    local_world_size: int = 1,
+    say: Callable[[str], None] | None = None,
 ) -> torch.device:
     """The device of process ``local_rank`` of the ``local_world_size`` on this machine.
 
     ``auto`` takes ``cuda:<local_rank>`` when every local process can have a GPU of its own,
     else the CPU: a run that asked for nothing in particular should start, and all ranks
     must agree (they see the same counts). When some GPUs are visible but fewer than the
-    processes, the CPU fallback is announced on stderr. ``cuda`` means ``cuda:<local_rank>``.
+    processes, the CPU fallback is said to ``say`` (``pfnet train`` prints it on stderr).
+    ``cuda`` means ``cuda:<local_rank>``.
 
     Raises:
         ConfigError: Unknown device string, CUDA requested but not available, or a GPU index
@@ -64,12 +68,11 @@ def resolve_device(
     if name == "auto":
         if count and count >= local_world_size:
             return torch.device(f"cuda:{local_rank}")
-        if count and local_rank == 0:
-            print(
+        if count and local_rank == 0 and say is not None:
+            say(
                 f"pfnet: {local_world_size} processes on this machine but {count} GPU(s) "
                 f"visible: device auto trains on the CPU (start at most {count} processes "
-                "per machine to use the GPUs)",
-                file=sys.stderr,
+                "per machine to use the GPUs)"
             )
         return torch.device("cpu")
     if name == "cpu":
@@ -93,13 +96,16 @@ def resolve_device(
     return torch.device(f"cuda:{index}")
 
 
-def setup(device: str | torch.device = "auto") -> DistContext:
-    """Join the torchrun process group if there is one and pick this process's device."""
+def setup(
+    device: str | torch.device = "auto", say: Callable[[str], None] | None = None
+) -> DistContext:
+    """Join the torchrun process group if there is one and pick this process's device (what
+    :func:`resolve_device` has to say goes to ``say``)."""
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
     local_world_size = int(os.environ.get("LOCAL_WORLD_SIZE", str(world_size)))
-    resolved = resolve_device(device, local_rank, local_world_size)
+    resolved = resolve_device(device, local_rank, local_world_size, say)
     if world_size > 1 and not dist.is_initialized():
         if resolved.type == "cuda":
             torch.cuda.set_device(resolved)
@@ -122,6 +128,19 @@ def teardown(context: DistContext, *, finished: bool = True) -> None:
         if finished:
             dist.barrier()
         dist.destroy_process_group()
+
+
+def epoch_means(sums: dict[str, float], context: DistContext) -> dict[str, float]:
+    """The mean over all processes of each running sum in ``sums`` (``count``: the samples
+    they add up)."""
+    keys = sorted(k for k in sums if k != "count")
+    values = torch.tensor([sums[k] for k in keys] + [sums.get("count", 0.0)], dtype=torch.float64)
+    if context.distributed:
+        values = values.to(context.device)
+        dist.all_reduce(values)
+        values = values.cpu()
+    count = float(values[-1]) or 1.0
+    return {k: float(v) / count for k, v in zip(keys, values[:-1].tolist(), strict=True)}
 
 
 def any_rank(flag: bool, context: DistContext) -> bool:

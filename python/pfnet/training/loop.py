@@ -41,7 +41,7 @@ from pfnet.training.batches import CompletionCollate, EpochBatches
 from pfnet.training.config import SaveSchedule, TrainConfig
 from pfnet.training.distributed import DistContext
 from pfnet.training.resume import check_resumable, data_identity, resumed_config, start_from
-from pfnet.training.runlog import plot_curves, write_log
+from pfnet.training.runlog import epoch_line, plot_curves, write_log
 from pfnet.training.saving import CheckpointWriter, cpu_snapshot
 from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
 from pfnet.training.signals import StopRequest
@@ -55,6 +55,7 @@ CURVES = "curves.png"
 VAL_METRIC = "val_cd_l2"  # selects best.pt: Pred→GT + GT→Pred on the missing region, ×1000
 CURVES_EVERY_S = 60.0  # curves.png is redrawn at most this often (and at the end)
 Notes = Callable[[str], None] | None  # what the caller hears, see train()
+OnStop = Callable[[], None] | None
 
 
 def train(
@@ -67,6 +68,8 @@ def train(
     progress: bool | None = None,
     val_data: str | Path | None = None,
     notes: Notes = None,
+    say: Notes = None,
+    on_stop: OnStop = None,
 ) -> dict[str, Any]:
     """Train ``config.model`` on the dataset in ``data_dir``, writing the run to ``out_dir``.
 
@@ -87,6 +90,9 @@ def train(
             catalogue model, validate on the 8 categories' split, which the wider set's
             train split leaves out).
         notes: Called with each note on the run (a short schedule); ``pfnet train`` prints.
+        say: Called with each line of the run's progress (every epoch's losses, the CPU taken
+            for too few GPUs), and ``on_stop`` when a signal asks the run to stop at the next
+            safe point; ``pfnet train`` prints both.
 
     Returns:
         A summary: ``epochs`` completed, ``interrupted``, ``best_epoch``, ``best_val_cd_l2``,
@@ -100,7 +106,7 @@ def train(
     init = [config.init_from] if config.init_from and Path(config.init_from).exists() else []
     inputs = [data_dir, *([val_data] if val_data else []), *init]
     refuse_overlap(out_dir, inputs, flag="run folder")
-    context = distributed.setup(device)
+    context = distributed.setup(device, say)
     finished = False
     try:  # one run in a run folder at a time (a second, or a --resume of one going, is refused)
         with writing(out_dir, "training into", hold=context.is_main):
@@ -109,7 +115,9 @@ def train(
                 config, Path(data_dir), Path(out_dir), context, resume=resume, val_dir=val_dir
             )
             show = sys.stderr.isatty() if progress is None else progress
-            summary = trainer.run(progress=show and context.is_main, notes=notes)
+            summary = trainer.run(
+                progress=show and context.is_main, notes=notes, say=say, on_stop=on_stop
+            )
             finished = True
             return summary
     finally:
@@ -224,6 +232,7 @@ class Trainer:
         self._loader: DataLoader | None = None
         self._val_batches: list[dict[str, Any]] | None = None
         self._writer: CheckpointWriter | None = None
+        self._say: Notes = None  # run()'s
         self._last_saved = time.monotonic()
         self._epochs_since_save = 0
         self._last_plot = -math.inf
@@ -348,8 +357,11 @@ class Trainer:
 
     # -- the loop ------------------------------------------------------------------------
 
-    def run(self, progress: bool = False, notes: Notes = None) -> dict[str, Any]:
+    def run(
+        self, progress: bool = False, notes: Notes = None, say: Notes = None, on_stop: OnStop = None
+    ) -> dict[str, Any]:
         """Train until ``config.epochs`` or a stop request; see :func:`train`."""
+        self._say = say
         ctx = self.context
         c = self.config
         if ctx.is_main:
@@ -360,7 +372,7 @@ class Trainer:
             if note and notes is not None and self.epoch == 0 and not self.batches_done:
                 notes(note)
         interrupted = False
-        with StopRequest().installed() as stop, CheckpointWriter() as writer:
+        with StopRequest(on_stop).installed() as stop, CheckpointWriter() as writer:
             self._writer = writer
             try:
                 if not self.history:
@@ -440,7 +452,7 @@ class Trainer:
                     self._save_last()
 
         row = {"epoch": epoch + 1, "step": self.global_step, "lr": self.step.lr, "alpha": alpha}
-        row.update(self._epoch_means())
+        row.update(distributed.epoch_means(self.epoch_sums, self.context))
         self.step.end_epoch()
         started = time.perf_counter()
         row.update(self.validate())
@@ -473,29 +485,7 @@ class Trainer:
             if time.monotonic() - self._last_plot >= CURVES_EVERY_S:
                 plot_curves(self.out_dir / CURVES, self.history)
                 self._last_plot = time.monotonic()
-            shown = ", ".join(
-                f"{k} {row[k]:.4g}"
-                for k in ("loss_g", "loss_d", "cd_detail", VAL_METRIC)
-                if k in row
-            )
-            print(
-                f"epoch {epoch + 1}/{self.epochs}: {shown}{' (best)' if improved else ''}",
-                file=sys.stderr,
-            )
+            if self._say is not None:
+                keys = ("loss_g", "loss_d", "cd_detail", VAL_METRIC)
+                self._say(epoch_line(epoch + 1, self.epochs, row, keys, improved))
         return False
-
-    def _epoch_means(self) -> dict[str, float]:
-        """Mean training losses of the epoch over all processes."""
-        keys = sorted(k for k in self.epoch_sums if k != "count")
-        values = torch.tensor(
-            [self.epoch_sums[k] for k in keys] + [self.epoch_sums.get("count", 0.0)],
-            dtype=torch.float64,
-        )
-        if self.context.distributed:
-            import torch.distributed as dist
-
-            values = values.to(self.device)
-            dist.all_reduce(values)
-            values = values.cpu()
-        count = float(values[-1]) or 1.0
-        return {k: float(v) / count for k, v in zip(keys, values[:-1].tolist(), strict=True)}

@@ -15,6 +15,15 @@ def write_log(path: Path, history: list[dict[str, Any]]) -> None:
         tmp.write_text("".join(json.dumps(row) + "\n" for row in history))
 
 
+def epoch_line(
+    epoch: int, epochs: int, row: dict[str, Any], keys: tuple[str, ...], improved: bool
+) -> str:
+    """The line an epoch is shown by: ``epoch 3/10: loss_g 0.1, ... (best)``, of ``row``'s
+    ``keys``."""
+    shown = ", ".join(f"{k} {row[k]:.4g}" for k in keys if k in row)
+    return f"epoch {epoch}/{epochs}: {shown}{' (best)' if improved else ''}"
+
+
 def plot_curves(path: Path, history: list[dict[str, Any]]) -> None:
     """Plot training losses and validation Chamfer distances against the epoch."""
     import matplotlib

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import contextlib
 import signal
-import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from pfnet.processes import STOP_SIGNALS
+
+STOP_NOTICE = "stopping at the next safe point and saving (Ctrl-C again to abort)"
+"""What a caller says when a signal asks a run to stop (:class:`StopRequest`'s ``on_stop``)."""
 
 
 class StopRequest:
@@ -26,18 +28,19 @@ class StopRequest:
     are replaced atomically, so even then the previous ``last.pt`` stays intact.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, on_stop: Callable[[], None] | None = None) -> None:
+        """``on_stop`` is called when the first signal asks the run to stop (``pfnet train``
+        says so, in :data:`STOP_NOTICE`'s words)."""
         self.requested = False
+        self._on_stop = on_stop
         self._previous: dict[int, Any] = {}
 
     def _handle(self, signum: int, _frame: object) -> None:
         if self.requested and signum == signal.SIGINT:
             raise KeyboardInterrupt
         self.requested = True
-        print(
-            "\npfnet train: stopping at the next safe point and saving (Ctrl-C again to abort)",
-            file=sys.stderr,
-        )
+        if self._on_stop is not None:
+            self._on_stop()
 
     @contextlib.contextmanager
     def installed(self) -> Iterator[StopRequest]:
