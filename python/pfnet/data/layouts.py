@@ -13,8 +13,7 @@ from pfnet.data.format import unsafe_component
 from pfnet.errors import DataError
 
 PARTIAL_SUFFIX = ".partial.npz"
-
-
+"""The side file of a split's partial scans: ``<split>.partial.npz``."""
 # PCN.json is about 1 MB and a ShapeNet-55 list under 2 MB; 2 GiB sparse ones took 4 GB.
 MAX_INDEX_BYTES = 16 << 20
 
