@@ -141,7 +141,7 @@ def test_grow_from_copies_a_trained_pfnet_with_zero_mirror_weights():
 def test_fine_tuning_grows_the_mirror_model_from_a_pfnet_checkpoint_only(tmp_path):
     from dataclasses import asdict
 
-    from pfnet.checkpoint import save_checkpoint
+    from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.training.config import TrainConfig
     from pfnet.training.resume import start_from
 
@@ -167,9 +167,9 @@ def test_the_onnx_export_passes_the_graph_check_and_completes_a_scan(tmp_path):
     (ConstantOfShape, Range, open slice ends), so ONNX Runtime runs it as torch does."""
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
-    from pfnet.checkpoint import save_checkpoint
     from pfnet.cli import main
-    from pfnet.onnx_graph import check_graph
+    from pfnet.inference.checkpoint import save_checkpoint
+    from pfnet.inference.onnx_graph import check_graph
     from pfnet.training.config import preset_config
 
     config = preset_config("small").replace(model="pfnet-mirror", n_points=512, width=0.125)
@@ -191,7 +191,7 @@ def test_the_onnx_export_passes_the_graph_check_and_completes_a_scan(tmp_path):
             str(checkpoint if runtime == "torch" else onnx_file),
         ]
         assert main([*argv, "--out", str(out), "--runtime", runtime]) == 0
-    from pfnet.io import read_point_cloud
+    from pfnet.io.clouds import read_point_cloud
 
     by_torch = read_point_cloud(tmp_path / "torch" / "scan_missing.ply")
     by_onnx = read_point_cloud(tmp_path / "onnx" / "scan_missing.ply")

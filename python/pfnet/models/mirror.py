@@ -70,7 +70,7 @@ class CMLP(_CMLP):
         self.mlp.layers[0][0] = nn.Conv1d(IN_CHANNELS, first.out_channels, 1)
 
 
-# The ONNX export of this model must pass pfnet.onnx_graph's check, which refuses
+# The ONNX export of this model must pass pfnet.inference.onnx_graph's check, which refuses
 # ConstantOfShape and Range (a forged file allocated gigabytes with them): so no torch.zeros
 # or arange of a size known only at run time below; the constants are buffers (not in the
 # state dict) and fresh tensors are made from the input (``x * 0``).
