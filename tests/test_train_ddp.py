@@ -111,7 +111,7 @@ def test_train_tells_teardown_whether_the_run_finished(
         def __init__(self, *args: object, **kwargs: object) -> None:
             pass
 
-        def run(self, progress: bool = False, notes: object = None) -> dict[str, object]:
+        def run(self, progress: bool = False, **heard: object) -> dict[str, object]:
             if fails:
                 raise RuntimeError("rank-local failure")
             return {"epochs": 1}
