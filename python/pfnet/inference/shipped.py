@@ -29,7 +29,7 @@ WEIGHTS_DIR = Path(__file__).parent.parent / "weights"
 SUFFIX = ".safetensors"
 # The model `complete` and `predict` use when no --checkpoint is given.
 # The best on the scan protocol (docs/scan-protocol.md): what `pfnet complete` gets.
-DEFAULT_MODEL = "sh3d-scan"
+DEFAULT_MODEL = "sh3d-mirror"
 
 # The help of every command's --checkpoint: what resolve_checkpoint accepts.
 CHECKPOINT_HELP = (
