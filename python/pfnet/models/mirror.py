@@ -43,13 +43,14 @@ import torch
 from torch import Tensor, nn
 
 from pfnet.models.completion import Completion, CompletionModel
-from pfnet.models.layers import check_partial, gather_points, multi_resolution_indices
+from pfnet.models.layers import gather_points
 from pfnet.models.pfnet import CMLP as _CMLP
 from pfnet.models.pfnet import (
     ENCODER_CMLP_CHANNELS,
     N_SCALES,
     PFNetVanilla,
     PointPyramidDecoder,
+    checked_scale_indices,
 )
 
 N_ANGLES = 24  # normal directions over half a turn: every 7.5 degrees
@@ -186,16 +187,8 @@ class MirrorEncoder(nn.Module):
     def forward(self, partial: Tensor, scale_indices: Tensor | None = None) -> Tensor:
         """Encode partial clouds (the arguments of
         :meth:`pfnet.models.pfnet.MultiResolutionEncoder.forward`) -> ``(B, 1920 · width)``."""
-        check_partial(partial, min_points=2 ** (N_SCALES - 1))
+        scale_indices = checked_scale_indices(partial, scale_indices)
         n = partial.shape[1]
-        if scale_indices is None:
-            scale_indices = torch.from_numpy(multi_resolution_indices(partial, N_SCALES))
-        if scale_indices.shape != (partial.shape[0], n // 2):
-            raise ValueError(
-                f"scale_indices must have shape {(partial.shape[0], n // 2)} for partial "
-                f"{tuple(partial.shape)}; got {tuple(scale_indices.shape)}"
-            )
-        scale_indices = scale_indices.to(partial.device)
         with torch.no_grad():
             # the first farthest points spread over the whole partial
             samples = gather_points(partial, scale_indices[:, : min(SEARCH_POINTS, n // 2)])

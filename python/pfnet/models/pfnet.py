@@ -66,6 +66,26 @@ class CMLP(nn.Module):
         return torch.cat([f.amax(dim=2) for f in reversed(features)], dim=1)
 
 
+def checked_scale_indices(partial: Tensor, scale_indices: Tensor | None) -> Tensor:
+    """The IFPS indices of the encoder's coarser scales (computed when ``None``), checked
+    against ``partial`` and moved to its device.
+
+    Raises:
+        ValueError: ``partial`` is not ``(B, n, 3)`` with n >= 4, or the indices are not
+            ``(B, n // 2)``.
+    """
+    check_partial(partial, min_points=2 ** (N_SCALES - 1))
+    n = partial.shape[1]
+    if scale_indices is None:
+        scale_indices = torch.from_numpy(multi_resolution_indices(partial, N_SCALES))
+    if scale_indices.shape != (partial.shape[0], n // 2):
+        raise ValueError(
+            f"scale_indices must have shape {(partial.shape[0], n // 2)} for partial "
+            f"{tuple(partial.shape)}; got {tuple(scale_indices.shape)}"
+        )
+    return scale_indices.to(partial.device)
+
+
 class MultiResolutionEncoder(nn.Module):
     """Multi-resolution encoder (paper §3.1): three CMLPs on IFPS scales, fused by MLP [3-1].
 
@@ -91,16 +111,8 @@ class MultiResolutionEncoder(nn.Module):
         Returns:
             ``(B, 1920 · width)`` latent vector V.
         """
-        check_partial(partial, min_points=2 ** (N_SCALES - 1))
+        scale_indices = checked_scale_indices(partial, scale_indices)
         n = partial.shape[1]
-        if scale_indices is None:
-            scale_indices = torch.from_numpy(multi_resolution_indices(partial, N_SCALES))
-        if scale_indices.shape != (partial.shape[0], n // 2):
-            raise ValueError(
-                f"scale_indices must have shape {(partial.shape[0], n // 2)} for partial "
-                f"{tuple(partial.shape)}; got {tuple(scale_indices.shape)}"
-            )
-        scale_indices = scale_indices.to(partial.device)
         latents = [self.cmlps[0](partial)]
         for s in range(1, N_SCALES):
             points = gather_points(partial, scale_indices[:, : n // 2**s])
