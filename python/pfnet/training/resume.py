@@ -107,11 +107,7 @@ def start_from(generator: nn.Module, config: TrainConfig) -> None:
     source, trained = load_checkpoint(config.init_from)
     # a model that grows from another (pfnet-mirror from pfnet-vanilla) takes its weights
     grows = trained.model in getattr(generator, "grows_from", ())
-    keys = (
-        ("width", "n_points", "missing_ratio")
-        if grows
-        else ("model", "width", "n_points", "missing_ratio")
-    )
+    keys = (() if grows else ("model",)) + ("width", "n_points", "missing_ratio")
     differ = [
         f"{k} {getattr(trained, k)!r} (run: {getattr(config, k)!r})"
         for k in keys
