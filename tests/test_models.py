@@ -256,3 +256,54 @@ def test_training_step_initialises_generator_and_discriminator(init: str) -> Non
     for module in (step.generator, step.discriminator):
         weights = torch.cat([n.weight for n in _layers(module, (torch.nn.BatchNorm1d,))])
         assert torch.all(weights == 1) == (init == "pytorch")
+
+
+def test_the_detail_head_resized_to_another_missing_ratio_repeats_the_trained_offsets():
+    from pfnet.models.pfnet import PFNetVanilla, resized_detail_head
+
+    torch.manual_seed(0)
+    trained = PFNetVanilla(n_points=512, n_missing=128, width=0.125).eval()
+    partial = torch.rand(2, 384, 3)
+    before = trained(partial).detail.reshape(2, 128, 1, 3)  # one offset per secondary centre
+    for n_missing, offsets in ((384, [0, 0, 0]), (128, [0])):
+        resized = PFNetVanilla(n_points=512, n_missing=n_missing, width=0.125).eval()
+        resized.load_state_dict(resized_detail_head(trained.state_dict(), n_missing))
+        after = resized(partial).detail.reshape(2, 128, len(offsets), 3)
+        torch.testing.assert_close(after, before[:, :, offsets])
+    wider = PFNetVanilla(n_points=512, n_missing=256, width=0.125)
+    state = resized_detail_head(wider.state_dict(), 128)  # a smaller M keeps the first offsets
+    torch.testing.assert_close(
+        state["decoder.detail_conv.4.bias"], wider.decoder.detail_conv[4].bias[:3]
+    )
+    with pytest.raises(ConfigError, match="M = 200 is not a positive multiple of 128"):
+        resized_detail_head(trained.state_dict(), 200)
+
+
+def test_fine_tuning_starts_a_pfnet_at_another_missing_ratio_but_not_a_baseline(tmp_path):
+    from dataclasses import asdict
+
+    from pfnet.inference.checkpoint import save_checkpoint
+    from pfnet.training.resume import start_from
+
+    def checkpoint(model: str) -> str:
+        generator = build_model(
+            ModelConfig(model=model, n_points=512, missing_ratio=0.5, width=0.125)
+        )
+        path = tmp_path / f"{model}.pt"
+        config = asdict(TrainConfig(model=model, n_points=512, missing_ratio=0.5, width=0.125))
+        save_checkpoint(path, {"model": generator.state_dict(), "config": config})
+        return str(path)
+
+    sizes = dict(n_points=512, missing_ratio=0.25, width=0.125)  # 128 points where 256 were
+    for model, source in (("pfnet-vanilla", "pfnet-vanilla"), ("pfnet-mirror", "pfnet-vanilla")):
+        generator = build_model(ModelConfig(model=model, **sizes))
+        path = checkpoint(source)
+        start_from(generator, TrainConfig(model=model, **sizes, init_from=path))
+        trained = torch.load(path, weights_only=False)["model"]
+        torch.testing.assert_close(
+            generator.state_dict()["decoder.detail_conv.4.weight"],
+            trained["decoder.detail_conv.4.weight"][:3],  # 2 offsets per centre cut to the first
+        )
+    baseline = build_model(ModelConfig(model="mlp", **sizes))
+    with pytest.raises(ConfigError, match=r"another network: missing_ratio 0.5 \(run: 0.25\)"):
+        start_from(baseline, TrainConfig(model="mlp", **sizes, init_from=checkpoint("mlp")))

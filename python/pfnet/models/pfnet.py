@@ -121,6 +121,15 @@ class MultiResolutionEncoder(nn.Module):
         return self.fuse(feature_map).squeeze(1)
 
 
+def check_missing(n_missing: int) -> None:
+    """Raise :class:`ConfigError` unless the decoder can predict ``n_missing`` points."""
+    if n_missing < SECONDARY_POINTS or n_missing % SECONDARY_POINTS:
+        raise ConfigError(
+            f"the point pyramid decoder predicts M points in groups of {SECONDARY_POINTS}; "
+            f"M = {n_missing} is not a positive multiple of {SECONDARY_POINTS}"
+        )
+
+
 class PointPyramidDecoder(nn.Module):
     """Point pyramid decoder (paper §3.2, Fig. 5).
 
@@ -137,11 +146,7 @@ class PointPyramidDecoder(nn.Module):
 
     def __init__(self, in_features: int, n_missing: int, width: float = 1.0) -> None:
         super().__init__()
-        if n_missing < SECONDARY_POINTS or n_missing % SECONDARY_POINTS:
-            raise ConfigError(
-                f"the point pyramid decoder predicts M points in groups of {SECONDARY_POINTS}; "
-                f"M = {n_missing} is not a positive multiple of {SECONDARY_POINTS}"
-            )
+        check_missing(n_missing)
         self.n_missing = n_missing
         fc1, fc2, fc3 = (scaled(c, width) for c in (1024, 512, 256))
         self.secondary_channels = scaled(128, width)
@@ -182,6 +187,30 @@ class PointPyramidDecoder(nn.Module):
         offsets3 = self.detail_conv(feat3).transpose(1, 2).reshape(batch, SECONDARY_POINTS, -1, 3)
         detail = (secondary.unsqueeze(2) + offsets3).reshape(batch, self.n_missing, 3)
         return Completion(primary, secondary, detail)
+
+
+def resized_detail_head(state: dict[str, Tensor], n_missing: int) -> dict[str, Tensor]:
+    """``state`` of a PF-Net-family generator, its detail head resized to ``n_missing`` points.
+
+    Only the last layer of the detail head depends on M: it gives each of the 128 secondary
+    centres ``k = M / 128`` offsets. The resized layer gives centre offset ``j`` the trained
+    offset ``j mod k_trained`` (a larger M repeats them; a smaller one keeps the first), so a
+    network trained at one missing ratio starts another where it was (``--init-from``). The
+    repeated points split apart in training: Chamfer's nearest point is the first of equals.
+
+    Raises:
+        ConfigError: ``n_missing`` is not a positive multiple of 128.
+    """
+    check_missing(n_missing)
+    resized = dict(state)
+    prefix = "decoder.detail_conv.4."
+    trained = state[prefix + "bias"].shape[0] // 3  # offsets per secondary centre
+    rows = torch.tensor(
+        [3 * (j % trained) + d for j in range(n_missing // SECONDARY_POINTS) for d in range(3)]
+    )
+    for name in ("weight", "bias"):
+        resized[prefix + name] = state[prefix + name][rows].clone()
+    return resized
 
 
 class PFNet(CompletionModel):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -101,13 +102,34 @@ def check_resumable(state: dict[str, Any], path: Path) -> None:
 
 
 def start_from(generator: nn.Module, config: TrainConfig) -> None:
-    """Copy the weights ``config.init_from`` names into ``generator`` (fine-tuning)."""
+    """Copy the weights ``config.init_from`` names into ``generator`` (fine-tuning).
+
+    A PF-Net-family checkpoint trained at another missing ratio starts a run at this one:
+    every weight is copied and the detail head's last layer resized
+    (:func:`~pfnet.models.pfnet.resized_detail_head`).
+
+    Raises:
+        ConfigError: The checkpoint is another network (model, width, cloud size, or a
+            missing ratio a model without a point pyramid decoder cannot change).
+    """
     from pfnet.inference.checkpoint import load_checkpoint
+    from pfnet.models import build_model
+    from pfnet.models.pfnet import resized_detail_head
 
     source, trained = load_checkpoint(config.init_from)
     # a model that grows from another (pfnet-mirror from pfnet-vanilla) takes its weights
     grows = trained.model in getattr(generator, "grows_from", ())
     keys = (() if grows else ("model",)) + ("width", "n_points", "missing_ratio")
+    head = "decoder.detail_conv.4.bias"  # the one layer of a point pyramid decoder sized by M
+    if (
+        trained.missing_ratio != config.missing_ratio
+        and head in source.state_dict()
+        and head in generator.state_dict()
+    ):  # the same network at another missing ratio: start its detail head from the trained one
+        trained = replace(trained, missing_ratio=config.missing_ratio)
+        resized = build_model(trained)
+        resized.load_state_dict(resized_detail_head(source.state_dict(), trained.n_missing))
+        source = resized
     differ = [
         f"{k} {getattr(trained, k)!r} (run: {getattr(config, k)!r})"
         for k in keys
