@@ -173,6 +173,12 @@ def test_bad_cameras_and_views_say_what_is_wrong() -> None:
     # and the nested spheres show too little from every side
     with pytest.raises(DataError, match=r"sample 0: none of 16 scanner cameras makes a sample"):
         scanner_test_crop(nested[None], 0.1)
+    # ... which a training crop takes all the same, from the camera nearest to a sample
+    partial, missing = scanner_sample(nested, 2000, 200, np.random.default_rng(0), best_effort=True)
+    assert partial.shape == (1800, 3) and missing.shape == (200, 3)
+    cloud = {tuple(q) for q in nested.astype(np.float32)}
+    assert all(tuple(q) in cloud for q in np.concatenate([partial, missing]))
+    assert not {tuple(q) for q in partial} & {tuple(q) for q in missing}  # seen, or hidden
 
 
 def test_a_view_that_hides_too_little_is_replaced_by_the_next_camera() -> None:
@@ -292,3 +298,22 @@ def test_the_scan_protocol_benchmark_takes_scanner_partials() -> None:
     assert script.DEFAULT_RATIOS == {"viewpoint": 0.25, "scanner": 0.5}
     with pytest.raises(SystemExit):
         script.main(["--data", "x", "--scans", "lidar"])
+
+
+def test_training_scanner_crops_take_a_flat_shape_the_test_protocol_refuses(
+    tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A SweetHome3D banknote (one flat sheet) stopped a scanner run at its 4th epoch."""
+    from pfnet.data import dataset as module
+    from pfnet.data.dataset import CompletionDataset
+
+    asked = []
+
+    def recording(*args, best_effort=False, **kwargs):
+        asked.append(best_effort)
+        return scanner_sample(*args, best_effort=best_effort, **kwargs)
+
+    monkeypatch.setattr(module, "scanner_sample", recording)
+    for crop in ("scanner", "scanner-test"):
+        CompletionDataset(tiny_dataset, "test", missing_ratio=0.5, crop=crop)[0]
+    assert asked == [True, False]
