@@ -33,14 +33,16 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.data import load_split, test_protocol_crop
+from pfnet.data.format import CloudSet
 from pfnet.data.scan_frame import UP_AXES, scan_normalisation, scan_pose, to_y_up
 from pfnet.data.scanner import scanner_test_crop
 from pfnet.data.symmetry import mirror_completion
 from pfnet.evaluation.metrics import sample_metrics, summarize
+from pfnet.inference.completion import DEFAULT_MIRROR_FILL
 from pfnet.io.clouds import read_point_cloud
 
 
-def complete_through_cli(scans, out, up, checkpoint, runtime):
+def complete_through_cli(scans, out, up, checkpoint, runtime, mirror_fill=None):
     """Run ``pfnet complete`` on the scans (saved as .npy) and read back the predictions."""
     inputs = out / "scans"
     inputs.mkdir()
@@ -53,6 +55,8 @@ def complete_through_cli(scans, out, up, checkpoint, runtime):
     command += ["--out", str(out / "completed"), "--up", up, "--runtime", runtime]
     if checkpoint:
         command += ["--checkpoint", checkpoint]
+    if mirror_fill is not None:
+        command += ["--mirror-fill", str(mirror_fill)]
     started = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     elapsed = time.perf_counter() - started
@@ -137,10 +141,22 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--checkpoint", default=None, help="model (default: the shipped one)")
     parser.add_argument("--runtime", default="auto", choices=("auto", "torch", "onnx"))
+    parser.add_argument(
+        "--mirror-fill",
+        type=float,
+        default=None,
+        help="complete's --mirror-fill (default: complete's default; 0: the network's points)",
+    )
     parser.add_argument("--up", default="y", choices=UP_AXES, help="stand the scans y- or z-up")
     parser.add_argument("--seed", type=int, default=0, help="seed of the poses (0)")
     parser.add_argument(
         "--no-turn", action="store_true", help="no turn about the up axis (scale and offset only)"
+    )
+    parser.add_argument(
+        "--categories",
+        nargs="+",
+        default=None,
+        help="score these categories' samples only (each keeps its crop and pose of the split)",
     )
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
     parser.add_argument(
@@ -166,10 +182,19 @@ def main(argv=None) -> None:
         scan_pose(i, up=args.up, seed=args.seed, turn=not args.no_turn) for i in range(len(points))
     ]
     scans = [pose.apply(p) for pose, p in zip(poses, partial, strict=True)]
+    if args.categories:  # a sample keeps the crop and pose its index gives it in the split
+        kept = [i for i, c in enumerate(categories) if c in set(args.categories)]
+        if not kept:
+            sys.exit(f"no {args.split} sample of {args.data} is in {', '.join(args.categories)}")
+        partial, removed = partial[kept], removed[kept]
+        categories = [categories[i] for i in kept]
+        poses, scans = [poses[i] for i in kept], [scans[i] for i in kept]
+        clouds = CloudSet(clouds.points[kept], clouds.category[kept], clouds.name[kept])
+        points = points[kept]
 
     with tempfile.TemporaryDirectory() as tmp:
         completed, said, elapsed = complete_through_cli(
-            scans, Path(tmp), args.up, args.checkpoint, args.runtime
+            scans, Path(tmp), args.up, args.checkpoint, args.runtime, args.mirror_fill
         )
 
     results = {
@@ -225,11 +250,13 @@ def main(argv=None) -> None:
             "scans": args.scans,
             "data": str(args.data),
             "split": args.split,
+            "categories": args.categories,
             "missing_ratio": args.ratio,
             "up": args.up,
             "seed": args.seed,
             "turned": not args.no_turn,
             "checkpoint": args.checkpoint or "default shipped model",
+            "mirror_fill": DEFAULT_MIRROR_FILL if args.mirror_fill is None else args.mirror_fill,
             "complete_said": said,
             "complete_seconds": round(elapsed, 2),
             "f_wins_over_mirror": wins,

@@ -53,6 +53,7 @@ def _scan_card(path: Path) -> dict:
         f"{document['missing_ratio']:.0%} missing, each scan turned, scaled and moved at random, "
         f"{document['up']}-up, through pfnet complete",
         "up": document["up"],
+        "mirror_fill": document.get("mirror_fill", 0.0),  # complete's --mirror-fill
         "cd_l2": model["mean"]["cd_l2"],
         "f_score": model["mean"]["f_score"],
         "categories": {

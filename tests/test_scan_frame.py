@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pfnet.data.scan_frame import scan_angle, scan_normalisation, scan_pose, to_y_up, up_rotation
-from pfnet.data.symmetry import estimate_mirror_plane, mirror_completion, reflect
+from pfnet.data.symmetry import estimate_mirror_plane, mirror_completion, mirror_fill, reflect
 from pfnet.errors import ConfigError, DataError
 from pfnet.models.config import ModelConfig
 
@@ -115,6 +115,56 @@ def test_mirror_plane_and_completion_fill_a_missing_side():
         estimate_mirror_plane(np.zeros((1, 3)))
 
 
+def test_the_coarse_plane_search_finds_the_exhaustive_searchs_planes(monkeypatch):
+    import pfnet.data.symmetry as symmetry
+
+    rng = np.random.default_rng(5)
+    clouds = []
+    for _ in range(6):  # noisy boxes' surfaces, nearly square from above, a random piece cut
+        half = np.array([1.0, rng.uniform(0.3, 0.8), rng.uniform(0.7, 0.95)])
+        box = rng.uniform(-1.0, 1.0, (2400, 3)) * half
+        face = rng.integers(3, size=len(box))
+        box[np.arange(len(box)), face] = np.sign(box[np.arange(len(box)), face]) * half[face]
+        box += rng.normal(0.0, 0.01, box.shape)
+        towards = rng.normal(size=3)
+        cut = box @ (towards / np.linalg.norm(towards)) > rng.uniform(0.2, 0.5)
+        clouds.append(box[~cut] / np.linalg.norm(box[~cut], axis=1).max())
+    assert all(len(c) > 2 * symmetry.SEARCH_POINTS for c in clouds)
+    found = [estimate_mirror_plane(c) for c in clouds]
+    monkeypatch.setattr(symmetry, "SEARCH_POINTS", 10**9)  # every plane on every point
+    for cloud, planes in zip(clouds, found, strict=True):
+        exhaustive = estimate_mirror_plane(cloud)
+        assert len(planes) == len(exhaustive)
+        for got, want in zip(planes, exhaustive, strict=True):
+            np.testing.assert_array_equal(got.normal, want.normal)
+            assert got.offset == want.offset and got.inliers == want.inliers
+
+
+def test_mirror_fill_puts_the_images_the_prediction_agrees_with_on_the_surface():
+    from pfnet.geometry import nearest_neighbors
+
+    cloud = _symmetric_cloud()
+    hole = (cloud[:, 0] > 0.55) & (cloud[:, 2] < 0.1)
+    partial, missing = cloud[~hole], cloud[hole].astype(np.float32)
+    rng = np.random.default_rng(1)
+    blob = missing.mean(axis=0) + rng.normal(0.0, 0.05, (150, 3))  # a network's compact guess
+    stray = np.array([0.0, -2.0, 0.0]) + rng.normal(0.0, 0.01, (50, 3))  # far from any image
+    predicted = np.concatenate([blob, stray]).astype(np.float32)
+
+    def on_surface(points):  # share of the points within 0.02 of the missing piece
+        sq_dist, _ = nearest_neighbors(np.ascontiguousarray(points, np.float32), missing)
+        return float((sq_dist < 0.02**2).mean())
+
+    filled = mirror_fill(predicted, partial)  # reach 0.15
+    assert filled.shape == predicted.shape and filled.dtype == np.float32
+    assert on_surface(filled) > 0.5 > 0.1 > on_surface(predicted)
+    kept = {tuple(p) for p in stray.astype(np.float32)}  # no image near them: they stay
+    assert sum(tuple(p) in kept for p in filled) == len(stray)
+    np.testing.assert_array_equal(mirror_fill(predicted, partial, reach=0.0), predicted)
+    nowhere = np.full((20, 3), 5.0, np.float32)  # no image within reach: the prediction stays
+    np.testing.assert_array_equal(mirror_fill(nowhere, partial, reach=0.15), nowhere)
+
+
 def test_a_bare_folder_named_like_a_runtime_is_not_that_runtime(tmp_path, monkeypatch):
     """An output folder `torch/` in the working directory made the light install take it for
     PyTorch (and fail on torch.cuda)."""
@@ -201,6 +251,9 @@ def test_complete_refuses_an_unknown_up_axis_before_loading():
 
     with pytest.raises(ConfigError, match="up axis must be one of y, z"):
         pfnet.complete(_scan(), "no-such-model", up="x")
+    for reach in (-0.1, float("nan"), "0.1"):
+        with pytest.raises(ConfigError, match="mirror fill must be a finite distance >= 0"):
+            pfnet.complete(_scan(), "no-such-model", mirror_fill=reach)
 
 
 def test_complete_command_up_z_says_model_frame_and_files(scan_model, tmp_path, capsys):

@@ -126,7 +126,7 @@ def test_the_card_leads_with_the_scan_protocol_and_pfnet_models_shows_it(
         json.dumps(
             {
                 "data": "data/sh3d", "split": "test", "missing_ratio": 0.25, "up": "y",
-                "f_wins_over_mirror": 1,
+                "f_wins_over_mirror": 1, "mirror_fill": 0.15,
                 "results": {
                     "complete (scan protocol)": table(12.5, 0.04),
                     "same model, shape frame (paper protocol)": table(9.0, 0.03),
@@ -141,6 +141,7 @@ def test_the_card_leads_with_the_scan_protocol_and_pfnet_models_shows_it(
     assert list(card)[:3] == ["summary", "scan", "recipe"]
     (first,) = card["scan"]
     assert first["cd_l2"] == 12.5 and first["mirror"] == {"cd_l2": 290.0, "f_score": 0.034}
+    assert first["mirror_fill"] == 0.15
     assert "y-up, through pfnet complete" in first["data"]
     import argparse
     from types import SimpleNamespace
@@ -156,3 +157,7 @@ def test_the_card_leads_with_the_scan_protocol_and_pfnet_models_shows_it(
     assert "frame     scan: trained on partials in their own centroid" in said
     assert said.index("scans") < said.index("paper")
     assert "12.50" in said and "a mirror of the input: 290.00, 0.034" in said
+    assert "through pfnet complete (mirror fill 0.15)" in said
+    del card["scan"][0]["mirror_fill"]  # a card from before the mirror fill
+    assert models.run(argparse.Namespace(json=False)) == 0
+    assert "(the network's points, --mirror-fill 0)" in capsys.readouterr().out

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from pfnet.data.scan_frame import UP_AXES
 from pfnet.errors import ConfigError
+from pfnet.inference.completion import DEFAULT_MIRROR_FILL
 from pfnet.inference.devices import DEVICE_HELP
 from pfnet.inference.runtimes import RUNTIME_HELP, RUNTIMES
 from pfnet.inference.shipped import CHECKPOINT_HELP
@@ -24,7 +25,9 @@ EPILOG = """examples:
 
 Each scan is normalised by its own centroid and radius (the scan frame) and turned y-up;
 for each INPUT it writes OUT/<stem>_missing.ply (the predicted points) and
-OUT/<stem>_completed.ply (the input, unchanged, then the predicted points)."""
+OUT/<stem>_completed.ply (the input, unchanged, then the predicted points). The
+predicted points near the scan's own mirror images are swapped for those images
+(--mirror-fill 0: the network's points only)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,6 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="replace output files in --out that pfnet did not write (a file of an earlier "
         "pfnet complete is always replaced)",
     )
+    parser.add_argument(
+        "--mirror-fill",
+        type=float,
+        default=DEFAULT_MIRROR_FILL,
+        metavar="REACH",
+        help="swap the predicted points near the scan's own mirror images (across its best "
+        "vertical symmetry planes) for those images, which lie on a surface; REACH in the "
+        f"scan's radii (default {DEFAULT_MIRROR_FILL}; 0: the network's points only)",
+    )
     parser.add_argument("--batch-size", type=int, default=32, help="clouds per batch (default: 32)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP)
     parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=RUNTIME_HELP)
@@ -54,11 +66,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``pfnet complete``; exit 2 if some inputs could not be read (the rest are done)."""
-    from pfnet.inference.completion import check_outputs, complete_files
+    from pfnet.inference.completion import check_mirror_fill, check_outputs, complete_files
     from pfnet.inference.runtimes import load_generator
 
     if args.batch_size < 1:
         raise ConfigError(f"--batch-size must be at least 1, got {args.batch_size}")
+    try:
+        check_mirror_fill(args.mirror_fill)
+    except ConfigError:
+        raise ConfigError(
+            f"--mirror-fill must be a distance >= 0 (0: off), got {args.mirror_fill}"
+        ) from None
     if args.out.exists() and not args.out.is_dir():
         raise ConfigError(f"--out {args.out} is a file; name a folder for the outputs")
     inputs = check_outputs(args.inputs, args.out, overwrite=args.overwrite)
@@ -67,7 +85,12 @@ def run(args: argparse.Namespace) -> int:
     frame = getattr(loaded.config, "frame", "shape")
     print(
         f"model {loaded.source} ({loaded.runtime}, trained in the {frame} frame); "
-        f"scans {args.up}-up, normalised by their own centroid and radius"
+        f"scans {args.up}-up, normalised by their own centroid and radius; "
+        + (
+            f"mirror fill within {args.mirror_fill:g}"
+            if args.mirror_fill > 0
+            else "the network's points only (--mirror-fill 0)"
+        )
     )
     if frame == "shape":
         print(
@@ -86,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         device=device,
         on_skip=lambda err: print(f"skipped: {err}", file=sys.stderr),
         source=loaded.source,
+        mirror_fill=args.mirror_fill,
     )
     if done:
         print(f"completed {len(done) // 2} of {len(inputs)} file(s); wrote:")

@@ -38,8 +38,12 @@ def run(args: argparse.Namespace) -> int:
         for scan in card.get("scan") or []:
             if isinstance(scan, dict):
                 mirror = scan.get("mirror") or {}
+                reach = scan.get("mirror_fill") or 0  # cards before the mirror fill: none
+                fill = (
+                    f"mirror fill {reach:g}" if reach else "the network's points, --mirror-fill 0"
+                )
                 print(
-                    f"  scans     {scan.get('data', '?')}: Pred->GT + GT->Pred x1000 "
+                    f"  scans     {scan.get('data', '?')} ({fill}): Pred->GT + GT->Pred x1000 "
                     f"{scan.get('cd_l2', float('nan')):.2f}, "
                     f"F-score@0.01 {scan.get('f_score', float('nan')):.3f} "
                     f"(a mirror of the input: {mirror.get('cd_l2', float('nan')):.2f}, "
