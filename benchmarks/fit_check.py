@@ -8,7 +8,7 @@ the validation CD-L2 ×1000 on the same shapes (test protocol, eval mode) over t
 
     python benchmarks/fit_check.py --data data/sh3d --out runs/fit [--model pfnet-vanilla]
         [--shapes 16] [--batch-size 16] [--lr 1e-3] [--steps 2000] [--milestones 0.5 0.75]
-        [--target 1.0]
+        [--target 1.0] [--config KEYS.toml]
 
 The run is sized in steps (``--steps``) with the learning rate multiplied by the preset's
 ``lr_gamma`` at ``--milestones`` (fractions of the run; none for a constant rate).
@@ -28,6 +28,7 @@ import numpy as np
 
 from pfnet.data.format import CloudSet, load_split, read_manifest, split_record, write_dataset
 from pfnet.training import preset_config, train
+from pfnet.training.config import load_config
 
 
 def fit_subset(data: Path, out: Path, shapes: int) -> Path:
@@ -62,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="scratch folder (resumable)")
     parser.add_argument("--model", default="pfnet-vanilla")
     parser.add_argument("--preset", default="small")
+    parser.add_argument(
+        "--config", type=Path, default=None, help="TOML file of config keys over the preset"
+    )
     parser.add_argument("--shapes", type=int, default=16)
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--lr", type=float, default=None, help="default: the preset's")
@@ -77,7 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     data = args.out / "data"
     if not (data / "manifest.json").is_file():
         fit_subset(args.data, data, args.shapes)
-    config = preset_config(args.preset).replace(
+    base = (
+        load_config(args.config, preset=args.preset) if args.config else preset_config(args.preset)
+    )
+    config = base.replace(
         model=args.model,
         batch_size=args.batch_size,
         lr=args.lr,
