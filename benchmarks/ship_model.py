@@ -5,8 +5,9 @@
 
 The float16 file is written first, then *it* (not the float32 checkpoint) predicts the test
 split of ``--test-data`` with the deterministic test protocol and is scored (missing region,
-25 %); those figures, the training data's catalogues, licences and per-model credits go into
-the card, and the file is written again with the card to ``python/pfnet/weights/NAME``.
+at the model's missing ratio); those figures, the training data's catalogues, licences and
+per-model credits go into the card, and the file is written again with the card to
+``python/pfnet/weights/NAME``.
 The test split must be one the run never trained on: the script refuses if a test shape's
 name is among the training data's.
 """
@@ -50,7 +51,8 @@ def _scan_card(path: Path) -> dict:
     mirror = results["mirror of the input (learns nothing)"]
     return {
         "data": f"{Path(document['data']).name} {document['split']} split, "
-        f"{document['missing_ratio']:.0%} missing, each scan turned, scaled and moved at random, "
+        + ("what a depth camera sees, " if document.get("scans") == "scanner" else "")
+        + f"{document['missing_ratio']:.0%} missing, each scan turned, scaled and moved at random, "
         f"{document['up']}-up, through pfnet complete",
         "up": document["up"],
         "mirror_fill": document.get("mirror_fill", 0.0),  # complete's --mirror-fill
@@ -69,7 +71,8 @@ def _card_rest(args, mean, evaluation, test, manifest) -> dict:
     """Everything of the card after its summary and scan figures."""
     from pfnet.inference.checkpoint import load_checkpoint
 
-    frame = getattr(load_checkpoint(args.checkpoint)[1], "frame", "shape")
+    trained = load_checkpoint(args.checkpoint)[1]
+    frame, ratio = getattr(trained, "frame", "shape"), trained.missing_ratio
     given = (
         "the complete shape's frame"
         if frame == "shape"
@@ -80,7 +83,7 @@ def _card_rest(args, mean, evaluation, test, manifest) -> dict:
         "train_data": _data_summary(args.train_data),
         "test": {
             "data": f"{args.test_data.name} test split ({len(test)} shapes, never trained "
-            f"on), 25 % missing, the paper's crops, {given}, mean over categories",
+            f"on), {ratio:.0%} missing, the paper's crops, {given}, mean over categories",
             "pred_to_gt": mean["pred_to_gt"],
             "gt_to_pred": mean["gt_to_pred"],
             "cd_l2": mean["pred_to_gt"] + mean["gt_to_pred"],
@@ -124,12 +127,15 @@ def main(argv: list[str] | None = None) -> int:
     if leaked:
         sys.exit(f"refusing: {len(leaked)} test shapes were trained on, e.g. {leaked[:3]}")
 
+    from pfnet.inference.checkpoint import load_checkpoint
+
+    ratio = load_checkpoint(args.checkpoint)[1].missing_ratio  # the paper's crops at the model's
     out = args.out_dir / f"{args.name}{SUFFIX}"
     with tempfile.TemporaryDirectory() as scratch:
         draft = write_shipped(args.checkpoint, Path(scratch) / f"draft{SUFFIX}")
         pred = Path(scratch) / "pred"
         predict_split(draft, args.test_data, pred, device="cpu")
-        evaluation = evaluate_predictions(pred, args.test_data, missing_ratio=0.25)
+        evaluation = evaluate_predictions(pred, args.test_data, missing_ratio=ratio)
     mean = evaluation.report["mean"]
     manifest = read_manifest(args.train_data)
     card: dict = {"summary": args.summary}
