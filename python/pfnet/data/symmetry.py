@@ -201,11 +201,13 @@ def mirror_images(
     return np.ascontiguousarray(mirrored[sq_dist > (2.0 * tolerance) ** 2])
 
 
-def _even(points: np.ndarray, count: int) -> np.ndarray:
-    """``count`` of ``points`` evenly spaced in their order (all of them when fewer)."""
-    if len(points) <= count:
-        return points
-    return points[np.linspace(0, len(points) - 1, count).round().astype(np.int64)]
+def _resized(points: np.ndarray, count: int) -> np.ndarray:
+    """Exactly ``count`` of ``points`` (not empty): evenly spaced in their order, or all of them
+    repeated cyclically when fewer. An even subsample keeps the density: a hole filled by many
+    mirrored points outweighs stray ones (farthest point sampling would pick the strays first)."""
+    if len(points) > count:
+        return points[np.linspace(0, len(points) - 1, count).round().astype(np.int64)]
+    return points[np.arange(count) % len(points)]
 
 
 def mirror_completion(
@@ -224,10 +226,7 @@ def mirror_completion(
     new = mirrored[sq_dist > (2.0 * tolerance) ** 2]
     if len(new) == 0:
         new = mirrored[np.argsort(sq_dist)[::-1][: max(1, n_missing)]]
-    # an even subsample keeps the density: a hole filled by many mirrored points outweighs
-    # stray ones (farthest point sampling would pick the strays first)
-    new = _even(new, n_missing)
-    return np.ascontiguousarray(new[np.arange(n_missing) % len(new)], dtype=np.float32)
+    return np.ascontiguousarray(_resized(new, n_missing), dtype=np.float32)
 
 
 def mirror_fill(
@@ -270,6 +269,5 @@ def mirror_fill(
         return predicted
     sq_dist, _ = nearest_neighbors(predicted, agreed)
     near = sq_dist < reach**2
-    taken = _even(agreed, int(near.sum()))
-    taken = taken[np.arange(int(near.sum())) % len(taken)]
+    taken = _resized(agreed, int(near.sum()))
     return np.concatenate([taken, predicted[~near]]).astype(np.float32)
