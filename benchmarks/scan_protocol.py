@@ -14,7 +14,13 @@ through the poses and scored against the removed points in the data set's frame 
   ``pfnet predict`` does: information a scan does not have);
 * the mirror completion (:mod:`pfnet.data.symmetry`), which learns nothing: the scan, turned
   y-up and normalised in the scan frame, reflected across the vertical plane estimated from
-  the scan alone.
+  the scan alone;
+* with ``--nearest DATA``, the nearest training crop (:mod:`pfnet.evaluation.nearest`), which
+  learns nothing either: the scan looked up among DATA's training shapes cut at the five
+  viewpoints from eight sides.
+
+Besides the means, each result gives the median scan's CD-L2 and the share of the CD-L2 sum
+that the worst tenth of the scans make (a mean that a few scans make says so).
 
     python benchmarks/scan_protocol.py --data data/sh3d [--checkpoint NAME] [--up z] \\
         [--scans scanner] [--json results/scan-protocol/sh3d-small.json]
@@ -115,12 +121,34 @@ def shape_frame_predictions(partial, checkpoint, runtime):
     return list(predict_missing(loaded.model, batch.astype(np.float32), 32, "cpu"))
 
 
+def nearest_predictions(scans, up, bank_data, n_points, n_missing):
+    """The nearest training crop of each scan (:mod:`pfnet.evaluation.nearest`), in the
+    scan's coordinates."""
+    from pfnet.evaluation.nearest import crop_bank, nearest_completion
+
+    bank_clouds = np.asarray(load_split(bank_data, "train").points, np.float32)[:, :n_points]
+    bank = crop_bank(bank_clouds, n_missing)
+    turn = to_y_up(up)
+    return [
+        nearest_completion(bank, np.asarray(scan, np.float64) @ turn.T)[0] @ turn for scan in scans
+    ]
+
+
 def score(predictions, removed, categories):
-    """Per-category and overall means (CD ×1000) of predictions against the removed points."""
+    """Per-category and overall means (CD ×1000) of predictions against the removed points,
+    with the median scan's CD-L2 and the worst tenth's share of the CD-L2 sum."""
     per_sample = sample_metrics(
         [np.asarray(p, np.float32) for p in predictions], list(removed.astype(np.float32))
     )
-    return summarize(per_sample, categories)
+    table = summarize(per_sample, categories)
+    cd = np.sort(np.asarray(per_sample["cd_l2"], np.float64) * 1000.0)[::-1]
+    worst = max(1, round(len(cd) / 10))
+    table["spread"] = {
+        "median_cd_l2": float(np.median(cd)),
+        "worst_tenth_share": float(cd[:worst].sum() / cd.sum()) if cd.sum() > 0 else 0.0,
+        "worst_cd_l2": [round(float(v), 2) for v in cd[:worst]],
+    }
+    return table
 
 
 def main(argv=None) -> None:
@@ -164,6 +192,12 @@ def main(argv=None) -> None:
         type=Path,
         default=None,
         help="save each sample's partial, completion (mapped back) and removed points here",
+    )
+    parser.add_argument(
+        "--nearest",
+        type=Path,
+        default=None,
+        help="also score the nearest training crop among this data set's training shapes",
     )
     parser.add_argument(
         "--no-mirror",
@@ -212,6 +246,13 @@ def main(argv=None) -> None:
                 poses, mirror_predictions(scans, args.up, removed.shape[1]), strict=True
             )
         ]
+    if args.nearest is not None:
+        nearest = nearest_predictions(
+            scans, args.up, args.nearest, points.shape[1], removed.shape[1]
+        )
+        results["nearest training crop (learns nothing)"] = [
+            pose.invert(c) for pose, c in zip(poses, nearest, strict=True)
+        ]
     tables = {name: score(p, removed, categories) for name, p in results.items()}
     if args.keep is not None:  # in the data set's frame, for `pfnet render --sample`
         args.keep.mkdir(parents=True, exist_ok=True)
@@ -238,9 +279,19 @@ def main(argv=None) -> None:
             values = table["mean"] if row == "mean" else table["categories"][row]
             cells.append(f"{values['cd_l2']:8.2f} CD-L2  F {values['f_score']:.4f}")
         print(row.ljust(10) + "".join(f" | {c:>28}" for c in cells))
+    spread = "".join(
+        f" | {'median ' + format(tables[n]['spread']['median_cd_l2'], '.2f'):>28}" for n in names
+    )
+    print("median".ljust(10) + spread)
+    share = "".join(
+        f" | {'worst tenth ' + format(tables[n]['spread']['worst_tenth_share'], '.0%'):>28}"
+        for n in names
+    )
+    print("of sum".ljust(10) + share)
     wins = None
-    if len(names) > 2:
-        model, mirror = tables[names[0]]["categories"], tables[names[2]]["categories"]
+    if not args.no_mirror:
+        model = tables[names[0]]["categories"]
+        mirror = tables["mirror of the input (learns nothing)"]["categories"]
         wins = sum(model[c]["f_score"] > mirror[c]["f_score"] for c in model)
         print(f"F-score above the mirror's in {wins} of {len(model)} categories")
     if args.json:
