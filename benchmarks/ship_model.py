@@ -116,6 +116,11 @@ def main(argv: list[str] | None = None) -> int:
         help="a JSON of benchmarks/scan_protocol.py measured on this model (y-up, then z-up): "
         "the card's first figures, what `pfnet complete` gets",
     )
+    parser.add_argument(
+        "--frame",
+        choices=("heading",),
+        help="ship a --frame scan --crop turned run in the heading frame (its inputs' frame)",
+    )
     parser.add_argument("--summary", required=True, help="one line for `pfnet models`")
     parser.add_argument("--recipe", required=True, help="how it was trained (the command)")
     parser.add_argument("--out-dir", type=Path, default=WEIGHTS_DIR)
@@ -132,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     ratio = load_checkpoint(args.checkpoint)[1].missing_ratio  # the paper's crops at the model's
     out = args.out_dir / f"{args.name}{SUFFIX}"
     with tempfile.TemporaryDirectory() as scratch:
-        draft = write_shipped(args.checkpoint, Path(scratch) / f"draft{SUFFIX}")
+        draft = write_shipped(args.checkpoint, Path(scratch) / f"draft{SUFFIX}", frame=args.frame)
         pred = Path(scratch) / "pred"
         predict_split(draft, args.test_data, pred, device="cpu")
         evaluation = evaluate_predictions(pred, args.test_data, missing_ratio=ratio)
@@ -142,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.scan_protocol:  # first: what `pfnet complete` gets
         card["scan"] = [_scan_card(path) for path in args.scan_protocol]
     card.update(_card_rest(args, mean, evaluation, test, manifest))
-    write_shipped(args.checkpoint, out, card=card)
+    write_shipped(args.checkpoint, out, card=card, frame=args.frame)
     size = out.stat().st_size / 1e6
     print(json.dumps({k: v for k, v in card.items() if k != "credits"}, indent=2))
     print(f"wrote {out} ({size:.1f} MB); test CD-L2 {card['test']['cd_l2']:.3f}")

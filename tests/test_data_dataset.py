@@ -37,7 +37,7 @@ def test_test_crop_matches_the_protocol(tiny_dataset: Path) -> None:
     assert dataset.categories == ["chair", "lamp", "sofa", "table"]
 
 
-@pytest.mark.parametrize("crop", ["viewpoint", "sphere", "multi"])
+@pytest.mark.parametrize("crop", ["viewpoint", "turned", "sphere", "multi"])
 def test_random_crops_are_seeded_by_seed_epoch_index(tiny_dataset: Path, crop: str) -> None:
     dataset = CompletionDataset(tiny_dataset, "train", missing_ratio=0.5, crop=crop, seed=7)
     twin = CompletionDataset(tiny_dataset, "train", missing_ratio=0.5, crop=crop, seed=7)
@@ -56,6 +56,37 @@ def test_random_crops_are_seeded_by_seed_epoch_index(tiny_dataset: Path, crop: s
     )
     other = CompletionDataset(tiny_dataset, "train", missing_ratio=0.5, crop=crop, seed=8)
     assert any(not np.array_equal(other[i]["missing"].numpy(), first[i]) for i in range(len(other)))
+
+
+def test_turned_crop_is_a_viewpoint_crop_of_the_turned_shape_turned_back(
+    tiny_dataset: Path,
+) -> None:
+    """The cut comes from a random side; the shape keeps its heading: the missing points are
+    the ones nearest one of the five viewpoints turned about y (found by a search over 0.1°
+    steps, a brute-force reference), and the turns differ from sample to sample."""
+    from pfnet.data.scan_frame import up_rotation
+    from pfnet.geometry import VIEWPOINTS
+
+    dataset = CompletionDataset(tiny_dataset, "train", crop="turned", seed=1)
+    plain = CompletionDataset(tiny_dataset, "train", crop="viewpoint", seed=1)
+    angles = np.linspace(0, 2 * np.pi, 3600, endpoint=False)
+    views = np.concatenate(
+        [np.stack([up_rotation(a, 1) @ np.asarray(v, float) for a in angles]) for v in VIEWPOINTS]
+    )  # (5 * 3600, 3): viewpoint k turned by angles[j] at row k * 3600 + j
+    found = []
+    for i in range(len(dataset)):
+        item = dataset[i]
+        complete, missing = item["complete"].numpy(), item["missing"].numpy()
+        np.testing.assert_array_equal(complete, plain[i]["complete"].numpy())  # not turned
+        dist = ((complete[None].astype(float) - views[:, None]) ** 2).sum(-1)
+        nearest = np.sort(np.argsort(dist, axis=1, kind="stable")[:, : len(missing)], axis=1)
+        wanted = np.sort([int(np.flatnonzero((complete == m).all(1))[0]) for m in missing])
+        rows = np.flatnonzero((nearest == wanted).all(1))
+        if len(rows):
+            found.append(angles[rows[0] % len(angles)])
+    assert len(found) >= 0.9 * len(dataset)
+    assert len({round(float(a), 1) for a in found}) > len(found) // 2
+    assert sum(min(a, 2 * np.pi - a) < 0.05 for a in found) < len(found) // 4
 
 
 def test_viewpoint_crop_uses_one_of_the_five_viewpoints(tiny_dataset: Path) -> None:
@@ -88,7 +119,9 @@ def test_dataloader_batches(tiny_dataset: Path) -> None:
 
 
 def test_dataset_errors(tiny_dataset: Path, tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="crop must be one of test, viewpoint, sphere, multi"):
+    with pytest.raises(
+        ConfigError, match="crop must be one of test, viewpoint, turned, sphere, multi"
+    ):
         CompletionDataset(tiny_dataset, "train", crop="random")
     with pytest.raises(ConfigError, match="seed must be a non-negative integer"):
         CompletionDataset(tiny_dataset, "train", seed=-2)

@@ -75,7 +75,7 @@ def test_frame_is_a_model_setting_with_a_clear_error():
     assert ModelConfig().frame == "shape"  # model files without the key: the paper's frame
     assert ModelConfig(frame="scan").frame == "scan"
     with pytest.raises(
-        ConfigError, match=r"frame must be one of shape, scan, aligned; got 'world'"
+        ConfigError, match=r"frame must be one of shape, scan, aligned, heading; got 'world'"
     ):
         ModelConfig(frame="world")
 

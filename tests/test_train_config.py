@@ -84,7 +84,7 @@ def test_command_line_overrides_the_file_which_overrides_the_preset(tmp_path: Pa
         ("alpha_schedule", ((0, 0.1), (0, 0.2)), "epochs increasing from 0"),
         ("adversarial_weight", 1.0, r"adversarial_weight must be a number in \[0, 1\)"),
         ("loss_scale", 0, "loss_scale must be a positive number"),
-        ("crop", "random", "crop must be one of viewpoint, sphere, multi"),
+        ("crop", "random", "crop must be one of viewpoint, turned, sphere, multi"),
         ("chamfer", "L1", "chamfer must be one of l2, l1; got 'L1'"),
         ("seed", -1, r"seed must be an integer in \[0, 2\*\*63\)"),
         ("workers", -2, r"workers must be an integer in \[0, 64\]"),

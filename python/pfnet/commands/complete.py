@@ -86,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"model {loaded.source} ({loaded.runtime}, trained in the {frame} frame); "
         f"scans {args.up}-up, normalised by their own centroid and radius; "
+        + ("each turned back by the heading read from it; " if frame == "heading" else "")
         + (
             f"mirror fill within {args.mirror_fill:g}"
             if args.mirror_fill > 0

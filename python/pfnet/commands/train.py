@@ -77,8 +77,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--crop",
         choices=TRAIN_CROPS,
-        help="training crop (default viewpoint); scanner: what a depth camera sees from a "
-        "random position, validated on the scanner test protocol (use --missing-ratio 0.5)",
+        help="training crop (default viewpoint); turned: a viewpoint turned by a random angle "
+        "about the up axis, the shape keeping its heading (for --frame heading); scanner: what "
+        "a depth camera sees from a random position, validated on the scanner test protocol "
+        "(use --missing-ratio 0.5)",
     )
     parser.add_argument(
         "--schedule",
@@ -92,8 +94,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=FRAMES,
         help="frame of the network's input: scan, the partial's own centroid and radius (what "
         "pfnet complete gives a model; the small preset's default); aligned, that frame "
-        "turned about the up axis to the partial's main horizontal axis; or shape, the "
-        "complete shape's (the paper's protocol; the paper preset's default)",
+        "turned about the up axis to the partial's main horizontal axis; heading, the scan "
+        "frame in the data set's own heading, validated on turned partials read back by the "
+        "shipped heading reader (train with --crop turned); or shape, the complete shape's "
+        "(the paper's protocol; the paper preset's default)",
     )
     parser.add_argument(
         "--chamfer",

@@ -18,7 +18,15 @@ from pfnet.errors import ConfigError, DataError
 
 __all__ = ["CROPS", "TEST_CROPS", "CompletionDataset", "validation_crop"]
 
-CROPS: tuple[str, ...] = ("test", "viewpoint", "sphere", "multi", "scanner", "scanner-test")
+CROPS: tuple[str, ...] = (
+    "test",
+    "viewpoint",
+    "turned",
+    "sphere",
+    "multi",
+    "scanner",
+    "scanner-test",
+)
 """Crop modes: the deterministic test protocol, one random viewpoint of the five (the
 authors' training crop), one random direction on the unit sphere, two random viewpoints, a
 depth camera's view from a random position (:mod:`pfnet.data.scanner`), or the scanner's
@@ -35,6 +43,21 @@ def validation_crop(train_crop: str) -> str:
 
 
 _MULTI_REGIONS = 2  # paper §4.4: pieces lost "in two random positions"
+
+
+def _heading_frame(partial: np.ndarray, up_axis: int, what: str):
+    """The ``heading`` frame of a turned test partial: the scan frame turned back by the
+    heading the shipped reader reads (:mod:`pfnet.data.heading`, trained y-up)."""
+    from pfnet.data.heading import load_reader
+
+    if up_axis != 1:
+        raise ConfigError(
+            f"{what}: the heading frame reads y-up partials; this data set's up axis is "
+            f"{'xyz'[up_axis]}"
+        )
+    base = scan_frame(partial, up_axis=1)
+    (heading,) = load_reader().headings([base.apply(partial)])
+    return scan_frame(partial, up_axis=1, heading=heading)
 
 
 def _manifest_up_axis(root: str | os.PathLike[str]) -> int:
@@ -63,7 +86,8 @@ class CompletionDataset(Dataset):
         root: A dataset folder written by ``pfnet prepare``.
         split: ``"train"``, ``"val"`` or ``"test"``.
         missing_ratio: Share of points removed, ``m = round(r·N)`` (paper: 0.25).
-        crop: One of :data:`CROPS`.
+        crop: One of :data:`CROPS` (``turned``: the paper's viewpoint crop from a random side
+            of a shape that keeps its heading, see ``_turned_crop``).
         seed: Seed of the random crops.
         fresh_points: With a random crop and a split that has a pool of points
             (``pfnet prepare --pool``): every access draws a new cloud of N points from the
@@ -73,9 +97,11 @@ class CompletionDataset(Dataset):
         augment: With a random crop: an :class:`~pfnet.data.augment.Augmentation` applied
             to the complete cloud before the crop (seeded by ``(seed, epoch, index)``).
         frame: ``shape`` (the stored frame, the paper's), ``scan`` (every sample normalised
-            by its partial cloud's own centroid and radius) or ``aligned`` (then turned about
-            the up axis to the partial's main horizontal axis); see
-            :func:`pfnet.data.scan_frame.scan_frame`.
+            by its partial cloud's own centroid and radius), ``aligned`` (then turned about
+            the up axis to the partial's main horizontal axis) or ``heading`` (training
+            partials in the scan frame, in the data set's own heading; turned test partials
+            turned back by the heading the shipped reader reads, :mod:`pfnet.data.heading`);
+            see :func:`pfnet.data.scan_frame.scan_frame`.
         up_axis: Index of the data set's up axis: what ``aligned`` turns about, and (with
             the test crop and ``turn_test``) what each sample is first turned about by the
             scan protocol's angle for it. ``None``: no test turn, and y for ``aligned``.
@@ -197,6 +223,8 @@ class CompletionDataset(Dataset):
         elif self.crop in ("scanner", "scanner-test"):
             partial, missing = self._scanner_sample(index, epoch, complete)
             complete = np.concatenate([partial, missing])  # N points, as the model's sample
+        elif self.crop == "turned":
+            partial, missing = self._turned_crop(index, epoch, complete)
         else:
             partial, missing = random_crop(
                 complete,
@@ -217,6 +245,19 @@ class CompletionDataset(Dataset):
             "index": index,
             "frame_radius": torch.tensor(radius, dtype=torch.float32),
         }
+
+    def _turned_crop(self, index, epoch, cloud):
+        """``(partial, missing)`` of the ``turned`` crop: one of the paper's viewpoints, turned
+        about the data set's up axis by a random angle (both drawn from ``(seed, epoch,
+        index)``). The shape keeps its heading and the cut comes from any side: the
+        ``viewpoint`` crop of the shape turned by that angle, turned back (the points are the
+        cloud's own, uncut by rounding)."""
+        from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint
+
+        rng = np.random.default_rng(self.crop_seed(index, epoch, stream=3))
+        view = np.asarray(VIEWPOINTS[int(rng.integers(len(VIEWPOINTS)))], np.float64)
+        turned = up_rotation(rng.uniform(0.0, 2.0 * np.pi), self._camera_up) @ view
+        return crop_by_viewpoint(cloud, turned.astype(cloud.dtype), n_missing=self.n_missing)
 
     def _scanner_sample(self, index, epoch, cloud):
         """``(partial, missing)`` of the scanner crops: a random camera drawn from
@@ -241,13 +282,17 @@ class CompletionDataset(Dataset):
     def _scan_frame(self, index, partial, missing, complete):
         """``(partial, missing, complete, radius)`` in the partial's own frame (test crops:
         after the scan protocol's turn about the up axis, unless ``turn_test`` is off)."""
-        if self.crop in TEST_CROPS and self.turn_test and self.up_axis is not None:
+        turned = self.crop in TEST_CROPS and self.turn_test and self.up_axis is not None
+        if turned:
             turn = up_rotation(scan_angle(index), self.up_axis).T
             partial, missing, complete = (
                 np.asarray(c, np.float64) @ turn for c in (partial, missing, complete)
             )
         up_axis = 1 if self.up_axis is None else self.up_axis
-        transform = scan_frame(partial, aligned=self.frame == "aligned", up_axis=up_axis)
+        if self.frame == "heading" and turned:  # read back, as `complete` will read a scan's
+            transform = _heading_frame(partial, up_axis, f"{self.split} sample {index}")
+        else:  # training partials of the heading frame keep the data set's heading
+            transform = scan_frame(partial, aligned=self.frame == "aligned", up_axis=up_axis)
         return (
             transform.apply(partial),
             transform.apply(missing),

@@ -41,8 +41,10 @@ __all__ = [
 # the complete shape's centroid and radius (the paper's protocol: information a real scan
 # never has); ``scan``, the partial cloud's own centroid and radius, as ``pfnet complete``
 # normalises a scan; or ``aligned``, the scan frame turned about the up axis to the partial's
-# main horizontal axis (:func:`scan_frame`).
-FRAMES = ("shape", "scan", "aligned")
+# main horizontal axis (:func:`scan_frame`); or ``heading``, the scan frame turned back by the
+# heading a heading reader reads from the partial (:mod:`pfnet.data.heading`), for a network
+# trained on partials in the data set's own heading.
+FRAMES = ("shape", "scan", "aligned", "heading")
 
 UP_AXES = ("y", "z")
 """The up axes a scan may have: ``y`` (the data sets', SweetHome3D's, OpenGL's) or ``z``
@@ -157,7 +159,9 @@ class ScanFrame:
         return (np.asarray(points, np.float64) @ self.rotation) * self.radius + self.centre
 
 
-def scan_frame(partial: np.ndarray, *, aligned: bool = False, up_axis: int = 1) -> ScanFrame:
+def scan_frame(
+    partial: np.ndarray, *, aligned: bool = False, up_axis: int = 1, heading: float | None = None
+) -> ScanFrame:
     """The frame a scan-frame network sees ``partial`` in (:data:`FRAMES`).
 
     ``scan``: the partial's own centroid and max radius. ``aligned`` (``aligned=True``): then
@@ -167,9 +171,17 @@ def scan_frame(partial: np.ndarray, *, aligned: bool = False, up_axis: int = 1) 
     unknown; this turn is a function of the partial alone, so a network trained in it sees its
     training partials as ``complete`` will show it a scan, with far less of the heading left to
     guess (an elongated bed or car up to a half turn, a round table not at all).
+
+    ``heading`` (radians, not with ``aligned``): the scan frame turned back by that heading,
+    the turn about the up axis that took the data set's frame to the partial's (a heading
+    reader's estimate, :mod:`pfnet.data.heading`).
     """
     base = scan_normalisation(partial)
     rotation = np.eye(3)
+    if heading is not None:
+        if aligned:
+            raise ConfigError("scan_frame: give aligned or heading, not both")
+        rotation = up_rotation(-float(heading), up_axis)
     if aligned:
         a, b = (axis for axis in range(3) if axis != up_axis)
         flat = ((np.asarray(partial, np.float64) - base.centre) / base.radius)[:, [a, b]]

@@ -312,9 +312,10 @@ def _car_normalisation(points: np.ndarray, frame: str = "scan"):
     (a single LiDAR return), a ball of radius 0.5 around them, half the car's length in this
     frame."""
     from pfnet.data.sampling import unit_ball
-    from pfnet.data.scan_frame import ScanFrame, scan_frame
+    from pfnet.data.scan_frame import ScanFrame
+    from pfnet.inference.predict import input_frame
 
     if unit_ball(points) is None:
         centre = np.asarray(points, np.float64).mean(axis=0)
         return ScanFrame(centre=centre, radius=0.5, rotation=np.eye(3))
-    return scan_frame(points, aligned=frame == "aligned")
+    return input_frame(points, frame)

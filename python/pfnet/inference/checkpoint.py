@@ -218,6 +218,7 @@ def write_shipped(
     out: str | os.PathLike[str],
     *,
     card: dict[str, Any] | None = None,
+    frame: str | None = None,
 ) -> Path:
     """Write a training checkpoint's generator as a model file (float tensors as float16).
 
@@ -227,6 +228,14 @@ def write_shipped(
             GPU machine that returns only small files, gets the card measured here).
         out: The ``.safetensors`` file to write (atomically).
         card: The model card to store (data, recipe, metrics), JSON-serialisable.
+        frame: ``heading`` to ship a run of the ``scan`` frame trained on partials in the
+            data set's own heading (``--crop turned``, no ``--augment-rotate``) as a model of
+            the ``heading`` frame: its training inputs were the heading frame's, and
+            ``complete`` then turns each scan back by the heading the reader reads. No other
+            change of frame is allowed (the network would see inputs it never trained on).
+
+    Raises:
+        ConfigError: Another change of frame, or a run whose partials were turned.
     """
     import torch
     from safetensors.torch import save_file
@@ -242,6 +251,8 @@ def write_shipped(
         state = {"config": config, "model": load_weights(checkpoint)}
     else:
         state = read_checkpoint(checkpoint)
+    if frame is not None and frame != state["config"].get("frame", "shape"):
+        state = {**state, "config": _reframed(state["config"], frame, checkpoint)}
     tensors = {
         key: (value.half() if value.is_floating_point() else value).contiguous()
         for key, value in inference_weights(state).items()
@@ -262,3 +273,19 @@ def write_shipped(
         os.umask(umask)
         tmp.chmod(0o666 & ~umask)
     return out
+
+
+def _reframed(config: dict[str, Any], frame: str, source: Any) -> dict[str, Any]:
+    """A run's config shipped in the ``heading`` frame (see :func:`write_shipped`)."""
+    was = config.get("frame", "shape")
+    if (was, frame) != ("scan", "heading"):
+        raise ConfigError(
+            f"{source}: a model of the {was} frame cannot be shipped as {frame} (only a scan "
+            "run trained in the data set's heading ships as heading)"
+        )
+    if config.get("augment_rotate") or config.get("crop", "viewpoint") != "turned":
+        raise ConfigError(
+            f"{source}: only a run trained with --crop turned and no --augment-rotate (its "
+            "partials in the data set's heading) ships in the heading frame"
+        )
+    return {**config, "frame": frame}

@@ -49,7 +49,8 @@ def input_frame(points: np.ndarray, frame: str, source: str = "input") -> Any:
 
     Every path that normalises an input by itself (``complete``, ``predict`` of a scan-frame
     model, the PCN and KITTI protocols) goes through here, so that an ``aligned`` model is
-    turned to the partial's main horizontal axis wherever it runs.
+    turned to the partial's main horizontal axis wherever it runs, and a ``heading`` model
+    turned back by the heading :mod:`pfnet.data.heading`'s shipped reader reads.
 
     Raises:
         DataError: If all points coincide (no scale to normalise by).
@@ -57,6 +58,11 @@ def input_frame(points: np.ndarray, frame: str, source: str = "input") -> Any:
     from pfnet.data.scan_frame import scan_frame
 
     normalisation(points, source)
+    if frame == "heading":  # turned back by the heading the shipped reader reads
+        from pfnet.data.heading import load_reader
+
+        (heading,) = load_reader().headings([scan_frame(points).apply(points)])
+        return scan_frame(points, heading=heading)
     return scan_frame(points, aligned=frame == "aligned")
 
 

@@ -22,7 +22,7 @@ from pfnet.models.config import (
     require,
 )
 
-TRAIN_CROPS = ("viewpoint", "sphere", "multi", "scanner")
+TRAIN_CROPS = ("viewpoint", "turned", "sphere", "multi", "scanner")
 # The Chamfer terms of the loss: mean squared distances (the paper) or mean distances.
 CHAMFER_KINDS = ("l2", "l1")
 PRECISIONS = ("fp32", "bf16")
@@ -81,7 +81,9 @@ class TrainConfig(ModelConfig):
         chamfer: ``l2`` (paper Eq. 1, the default): the loss's Chamfer terms are mean squared
             distances; ``l1``: mean distances (PoinTr's CD-L1), a deviation for small data
             sets where the squared terms pull completions into compact blobs (README).
-        crop: Training crop: ``viewpoint`` (one of the five), ``sphere`` or ``multi`` region,
+        crop: Training crop: ``viewpoint`` (one of the five), ``turned`` (one of the five,
+            turned about the up axis by a random angle while the shape keeps its heading),
+            ``sphere`` or ``multi`` region,
             or ``scanner``: what a depth camera at a random position sees
             (:mod:`pfnet.data.scanner`; a missing ratio of 0.5 fits its hidden share), then
             validated on the scanner's test protocol instead of the paper's.
