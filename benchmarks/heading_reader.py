@@ -36,13 +36,10 @@ from pfnet.data.scan_frame import up_rotation
 def reader_input(partial: np.ndarray, points: int) -> tuple[np.ndarray, float]:
     """A y-up partial as the reader reads it: its aligned frame sampled as the reader
     samples (farthest points from point 0), and its main axis's angle."""
-    from pfnet.geometry import farthest_point_sample
+    from pfnet.data.sampling import fixed_size
 
     aligned, angle = aligned_input(partial)
-    cloud = np.ascontiguousarray(aligned, np.float32)
-    if len(cloud) > points:
-        return cloud[farthest_point_sample(cloud, points, start_index=0)], angle
-    return cloud[np.arange(points) % len(cloud)], angle
+    return fixed_size(aligned, points), angle
 
 
 def angle_errors(read: np.ndarray, true: np.ndarray) -> np.ndarray:

@@ -59,14 +59,9 @@ class HeadingReader:
     def sample(self, partial: np.ndarray) -> np.ndarray:
         """``(points, 3)`` float32: the reader's input made of a normalised partial cloud
         (farthest point samples from point 0; a smaller cloud repeated cyclically)."""
-        from pfnet.geometry import farthest_point_sample
+        from pfnet.data.sampling import fixed_size
 
-        cloud = np.ascontiguousarray(partial, np.float32)
-        if len(cloud) > self.points:
-            index = farthest_point_sample(cloud, self.points, start_index=0)
-        else:
-            index = np.arange(self.points) % len(cloud)
-        return cloud[index]
+        return fixed_size(partial, self.points)
 
     def logits(self, samples: np.ndarray) -> np.ndarray:
         """``(B, bins)`` scores of ``(B, points, 3)`` reader inputs (:meth:`sample`)."""

@@ -143,6 +143,20 @@ class Normalisation:
         return (np.asarray(points, np.float64) * self.radius + self.centre).astype(np.float32)
 
 
+def fixed_size(points: np.ndarray, n: int) -> np.ndarray:
+    """float32 ``(n, 3)``: a cloud reduced by iterative farthest point sampling from point 0,
+    or repeated cyclically when smaller (point ``k`` is point ``k mod N``): the deterministic
+    resampling of a network's input, the heading reader's and the nearest-crop look-up's."""
+    from pfnet.geometry import farthest_point_sample
+
+    cloud = np.ascontiguousarray(points, dtype=np.float32)
+    if len(cloud) > n:
+        index = farthest_point_sample(cloud, n, start_index=0)
+    else:
+        index = np.arange(n) % len(cloud)
+    return np.ascontiguousarray(cloud[index], dtype=np.float32)
+
+
 def unit_ball(points: np.ndarray) -> Normalisation | None:
     """The authors' ``pc_normalize`` as a transform: centre at the centroid (the mean of the
     points), divide by the largest distance to it; ``None`` when all points coincide."""

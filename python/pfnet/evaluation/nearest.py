@@ -21,8 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pfnet.data.sampling import fixed_size
 from pfnet.data.scan_frame import scan_frame, up_rotation
-from pfnet.geometry import VIEWPOINTS, chamfer, crop_by_viewpoint, farthest_point_sample
+from pfnet.geometry import VIEWPOINTS, chamfer, crop_by_viewpoint
 
 SAMPLES = 512
 """Farthest-point samples of each partial that the Chamfer ranking compares."""
@@ -60,10 +61,7 @@ def descriptor(points: np.ndarray) -> np.ndarray:
 
 
 def _samples(points: np.ndarray) -> np.ndarray:
-    cloud = np.ascontiguousarray(points, np.float32)
-    if len(cloud) > SAMPLES:
-        return cloud[farthest_point_sample(cloud, SAMPLES, start_index=0)]
-    return cloud[np.arange(SAMPLES) % len(cloud)]
+    return fixed_size(points, SAMPLES)
 
 
 def crop_bank(clouds: np.ndarray, n_missing: int, *, turns: int = 8, seed: int = 0) -> CropBank:

@@ -74,15 +74,9 @@ def network_input(points: np.ndarray, n_input: int) -> np.ndarray:
     Returns:
         float32 ``(n_input, 3)``.
     """
-    from pfnet.geometry import farthest_point_sample
+    from pfnet.data.sampling import fixed_size
 
-    points = np.ascontiguousarray(points, dtype=np.float32)
-    n = len(points)
-    if n > n_input:
-        index = farthest_point_sample(points, n_input, start_index=0)
-    else:
-        index = np.arange(n_input) % n
-    return np.ascontiguousarray(points[index], dtype=np.float32)
+    return fixed_size(points, n_input)
 
 
 def predict_missing(
