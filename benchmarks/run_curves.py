@@ -4,7 +4,9 @@
         --out docs/mirror-curves.png [--label NAME ...]
 
 Left: validation CD-L2 ×1000 (the run's own validation, after every epoch) against the
-optimiser step, with the running best; right: the training loss's detail Chamfer term. A run
+optimiser step, with the median of the last :data:`WINDOW` epochs (a validation split of a few
+dozen scans jumps by half from one epoch to the next at a full learning rate, so its running
+best is a lucky epoch, not a level); right: the training loss's detail Chamfer term. A run
 still going is drawn as far as its log goes.
 """
 
@@ -25,6 +27,17 @@ def read_log(run: Path) -> list[dict]:
         except json.JSONDecodeError:
             continue
     return rows
+
+
+WINDOW = 10
+"""Epochs in the validation's running median."""
+
+
+def running_median(values: list[float], window: int = WINDOW) -> list[float]:
+    """The median of each value and the ``window - 1`` before it (fewer at the start)."""
+    import numpy as np
+
+    return [float(np.median(values[max(0, k - window + 1) : k + 1])) for k in range(len(values))]
 
 
 def curves(rows: list[dict]) -> dict[str, list[tuple[int, float]]]:
@@ -54,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         if found["val"]:
             steps, values = zip(*found["val"], strict=True)
             (line,) = left.plot(steps, values, alpha=0.35, label=f"{label} (each epoch)")
-            best = [min(values[: k + 1]) for k in range(len(values))]
-            left.plot(steps, best, color=line.get_color(), label=f"{label} (best so far)")
+            level = running_median(list(values))
+            left.plot(steps, level, color=line.get_color(), label=f"{label} (median of {WINDOW})")
         if found["train"]:
             steps, values = zip(*found["train"], strict=True)
             right.plot(steps, values, label=label)

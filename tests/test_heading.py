@@ -241,7 +241,7 @@ def test_the_heading_reader_script_writes_a_reader(tiny_dataset: Path, tmp_path:
     assert figures["all"]["n"] == 8 * 5 and 0.0 <= figures["half_turn_off"] <= 1.0
 
 
-def test_the_heading_oracle_takes_the_better_half_turn(tiny_dataset: Path, tmp_path: Path) -> None:
+def test_the_heading_oracle_takes_the_better_candidate(tiny_dataset: Path, tmp_path: Path) -> None:
     import json
 
     from scripts import load_script
@@ -252,7 +252,12 @@ def test_the_heading_oracle_takes_the_better_half_turn(tiny_dataset: Path, tmp_p
         ["--data", str(tiny_dataset), "--checkpoint", str(checkpoint), "--json", str(out)]
     )
     figures = json.loads(out.read_text())["figures"]
-    oracle = figures["the better of the two (oracle)"]["cd_l2"]
-    assert oracle <= figures["as the frame gives it"]["cd_l2"]
-    assert oracle <= figures["half a turn"]["cd_l2"]
+    two = figures["the better of the two turns (oracle)"]["cd_l2"]
+    four = figures["the best of the four (oracle)"]["cd_l2"]
+    assert two <= figures["as the frame gives it"]["cd_l2"]
+    assert two <= figures["half a turn"]["cd_l2"]
+    assert four <= two and four <= figures["reflected"]["cd_l2"]
+    for rule in ("the farthest reach", "the fewest on the partial"):  # a pick is no oracle
+        assert figures[f"{rule}, of the four"]["cd_l2"] >= four
+        assert figures[f"{rule}, of the two turns"]["cd_l2"] >= two
     assert 0.0 <= figures["half a turn better"] <= 1.0
