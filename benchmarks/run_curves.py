@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             right.plot(steps, values, label=label)
     left.set(xlabel="optimiser step", ylabel="val CD-L2 x1000", yscale="log")
     left.set_title("validation")
-    right.set(xlabel="optimiser step", ylabel="training cd_detail (L1 terms x loss scale)")
+    right.set(xlabel="optimiser step", ylabel="training cd_detail (its Chamfer terms x loss scale)")
     right.set_title("training")
     left.legend(fontsize=7)
     right.legend(fontsize=7)
