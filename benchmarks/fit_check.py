@@ -90,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
         lr=args.lr,
         steps=args.steps,
         lr_milestones=tuple(args.milestones),
+        # its val split is its training shapes: one cut each, as every fit check before
+        val_views=1,
     )
     if args.adversarial_weight is not None:
         config = config.replace(adversarial_weight=args.adversarial_weight)

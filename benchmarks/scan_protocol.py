@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pfnet.data import load_split, test_protocol_crop
+from pfnet.data import every_view, load_split, test_protocol_crop
 from pfnet.data.format import CloudSet
 from pfnet.data.scan_frame import UP_AXES, scan_normalisation, scan_pose, to_y_up
 from pfnet.data.scanner import scanner_test_crop
@@ -98,20 +98,6 @@ SCANS = ("viewpoint", "scanner")
 DEFAULT_RATIOS = {"viewpoint": 0.25, "scanner": 0.5}
 """The missing ratio of each kind of scan: the paper's; half, about what a camera misses of
 SweetHome3D's furniture (docs/data.md)."""
-
-
-def every_view(clouds: CloudSet, views: int) -> CloudSet:
-    """Each shape ``views`` times in a row, named ``NAME-vV``, so that the test crops'
-    ``VIEWPOINTS[j % 5]`` (and the scanner's camera ``j``) cut shape ``i`` at views ``5 i`` to
-    ``5 i + views - 1``."""
-    if views == 1:
-        return clouds
-    names = [f"{name}-v{v}" for name in clouds.name.tolist() for v in range(views)]
-    return CloudSet(
-        np.repeat(np.asarray(clouds.points, np.float32), views, axis=0),
-        np.repeat(clouds.category, views),
-        np.asarray(names),
-    )
 
 
 def test_partials(points, scans, ratio):

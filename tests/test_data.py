@@ -13,6 +13,7 @@ import pytest
 from pfnet.data import (
     SPLITS,
     CloudSet,
+    every_view,
     load_split,
     missing_count,
     prepare_dataset,
@@ -24,7 +25,7 @@ from pfnet.data.prepare import assign_splits
 from pfnet.data.sampling import normalize, resample_points, sample_surface, shape_rng
 from pfnet.data.sources import ShapeItem, safe_name, unique_names
 from pfnet.errors import ConfigError, DataError
-from pfnet.geometry import VIEWPOINTS
+from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint
 
 
 def _procedural(out: Path, **options) -> Path:
@@ -332,6 +333,24 @@ def test_test_protocol_crop_edge_cases() -> None:
         test_protocol_crop(np.zeros((64, 3)), 0.25)
     with pytest.raises(ConfigError, match="missing_ratio must be in"):
         test_protocol_crop(np.zeros((1, 64, 3)), 1.5)
+
+
+def test_every_view_cuts_every_shape_at_all_five_viewpoints() -> None:
+    rng = np.random.default_rng(1)
+    points = rng.normal(size=(2, 64, 3)).astype(np.float32)
+    pool = rng.normal(size=(2, 64, 3)).astype(np.float32)
+    clouds = CloudSet(points, np.array(["a", "b"]), np.array(["x", "y"]), pool)
+    assert every_view(clouds, 1) is clouds
+    five = every_view(clouds, 5)
+    assert five.name.tolist() == [f"{n}-v{v}" for n in "xy" for v in range(5)]
+    assert five.category.tolist() == ["a"] * 5 + ["b"] * 5 and five.extra is None
+    partial, _ = test_protocol_crop(five.points, 0.25)
+    for j in range(10):  # sample 5 i + v: shape i cut at viewpoint v
+        expected, _ = crop_by_viewpoint(points[j // 5], VIEWPOINTS[j % 5], n_missing=16)
+        np.testing.assert_array_equal(partial[j], expected)
+    for views in (0, 2, 3, True, "5"):
+        with pytest.raises(ConfigError, match=r"views must be 1 or 5 \(of the five viewpoints\)"):
+            every_view(clouds, views)
 
 
 def test_npz_members_have_a_fixed_timestamp(tiny_dataset: Path) -> None:

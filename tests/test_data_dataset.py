@@ -37,6 +37,32 @@ def test_test_crop_matches_the_protocol(tiny_dataset: Path) -> None:
     assert dataset.categories == ["chair", "lamp", "sofa", "table"]
 
 
+def test_five_views_give_every_shape_all_five_test_crops(tiny_dataset: Path) -> None:
+    from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint
+
+    clouds = load_split(tiny_dataset, "test")
+    shape = CompletionDataset(tiny_dataset, "test", crop="test", views=5)
+    scan = CompletionDataset(tiny_dataset, "test", crop="test", frame="scan", up_axis=1, views=5)
+    one = CompletionDataset(tiny_dataset, "test", crop="test", frame="scan", up_axis=1)
+    assert len(shape) == len(scan) == 5 * len(one) == 60 and scan.categories == one.categories
+    for j in (0, 4, 7, 59):  # shape j // 5 cut at viewpoint j % 5
+        expected, _ = crop_by_viewpoint(clouds.points[j // 5], VIEWPOINTS[j % 5], n_missing=128)
+        item = shape[j]
+        np.testing.assert_array_equal(item["partial"].numpy(), expected)
+        assert item["name"] == f"{clouds.name[j // 5]}-v{j % 5}" and item["index"] == j
+        turned = scan[j]  # the same cut, in a scan frame of its own: distances kept
+        gaps = np.linalg.norm(expected[:40, None] - expected[None, :40], axis=-1)
+        ours = turned["partial"].numpy()[:40].astype(np.float64) * float(turned["frame_radius"])
+        np.testing.assert_allclose(
+            np.linalg.norm(ours[:, None] - ours[None], axis=-1), gaps, atol=1e-5
+        )
+    np.testing.assert_array_equal(scan[0]["partial"].numpy(), one[0]["partial"].numpy())
+    with pytest.raises(ConfigError, match="views = 5 cuts each shape at several viewpoints"):
+        CompletionDataset(tiny_dataset, "train", crop="viewpoint", views=5)
+    with pytest.raises(ConfigError, match="views must be 1 or 5"):
+        CompletionDataset(tiny_dataset, "test", crop="test", views=2)
+
+
 @pytest.mark.parametrize("crop", ["viewpoint", "turned", "sphere", "multi"])
 def test_random_crops_are_seeded_by_seed_epoch_index(tiny_dataset: Path, crop: str) -> None:
     dataset = CompletionDataset(tiny_dataset, "train", missing_ratio=0.5, crop=crop, seed=7)

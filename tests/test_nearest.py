@@ -89,24 +89,3 @@ def test_the_scan_protocol_scores_the_spread_of_its_scans() -> None:
     assert spread["worst_cd_l2"][0] == pytest.approx(
         table["categories"]["a"]["cd_l2"] * 10, rel=1e-4
     )
-
-
-def test_the_scan_protocol_cuts_every_shape_at_all_five_views() -> None:
-    from scripts import load_script
-
-    from pfnet.data import test_protocol_crop
-    from pfnet.data.format import CloudSet
-    from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint
-
-    script = load_script("scan_protocol")
-    rng = np.random.default_rng(1)
-    points = rng.normal(size=(2, 64, 3)).astype(np.float32)
-    clouds = CloudSet(points, np.array(["a", "b"]), np.array(["x", "y"]))
-    assert script.every_view(clouds, 1) is clouds
-    five = script.every_view(clouds, 5)
-    assert five.name.tolist() == [f"{n}-v{v}" for n in "xy" for v in range(5)]
-    assert five.category.tolist() == ["a"] * 5 + ["b"] * 5
-    partial, _ = test_protocol_crop(five.points, 0.25)
-    for j in range(10):  # scan 5 i + v: shape i cut at viewpoint v
-        expected, _ = crop_by_viewpoint(points[j // 5], VIEWPOINTS[j % 5], n_missing=16)
-        np.testing.assert_array_equal(partial[j], expected)

@@ -433,6 +433,37 @@ def test_val_data_validates_on_another_data_sets_split(tiny_dataset: Path, tmp_p
         train(config, tiny_dataset, other / "run", device="cpu", progress=False, val_data=other)
 
 
+def test_val_views_validate_every_shape_at_all_five_viewpoints(
+    tiny_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pfnet.data.dataset import CompletionDataset
+    from pfnet.evaluation.metrics import sample_metrics, summarize
+
+    assert preset_config("small").val_views == 5 and preset_config("paper").val_views == 1
+    config = FAST.replace(model="pfnet-vanilla", epochs=1, width=0.125, frame="shape")
+    runs = {}
+    for views in (1, 5):
+        run = tmp_path / f"views-{views}"
+        train(config.replace(val_views=views), tiny_dataset, run, device="cpu", progress=False)
+        runs[views] = _rows(run)
+        assert json.loads((run / "config.json").read_text())["val_views"] == views
+    assert runs[1][1]["loss_g"] == runs[5][1]["loss_g"]  # the same training, other scans
+    # what the log says is the network's mean over categories on the 5 cuts of each shape
+    model, _ = load_checkpoint(tmp_path / "views-5" / "best.pt")
+    model.eval()
+    five = CompletionDataset(tiny_dataset, "val", crop="test", views=5)
+    items = [five[j] for j in range(len(five))]
+    with torch.no_grad():
+        detail = model(torch.stack([item["partial"] for item in items])).detail.numpy()
+    metrics = sample_metrics(detail, np.stack([item["missing"].numpy() for item in items]))
+    expected = summarize(metrics, [item["category"] for item in items])["mean"]["cd_l2"]
+    assert runs[5][-1]["val_cd_l2"] == pytest.approx(expected, rel=1e-4)
+    assert runs[1][-1]["val_cd_l2"] != pytest.approx(expected, rel=1e-4)
+    code = main(["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "cli"),
+                 "--preset", "small", "--val-views", "3", "--epochs", "1"])  # fmt: skip
+    assert code == 1 and "val_views must be 1 or 5; got 3" in capsys.readouterr().err
+
+
 def test_init_from_fine_tunes_from_a_trained_generator(tiny_dataset: Path, tmp_path: Path) -> None:
     config = FAST.replace(model="pfnet-vanilla", epochs=1, width=0.125)
     first = tmp_path / "first"

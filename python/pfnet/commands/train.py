@@ -42,6 +42,11 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "lr_gamma": (float, "learning-rate factor at each StepLR period or --steps milestone"),
     "adversarial_weight": (float, "λ_adv of the joint loss (paper 0.05)"),
     "workers": (int, "data-loader worker processes, alive for the whole run"),
+    "val_views": (
+        int,
+        "validate on every val shape cut at 1 or all 5 test viewpoints "
+        "(paper preset 1, small preset 5)",
+    ),
     "augment_scale": (float, "scale each axis of training clouds by U(1-s, 1+s) (default 0)"),
     "augment_jitter": (float, "std of Gaussian noise added to training clouds (default 0)"),
     "ema": (

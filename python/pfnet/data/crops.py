@@ -9,12 +9,20 @@ all crop with :func:`test_protocol_crop`.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pfnet.errors import ConfigError
 
-__all__ = ["missing_count", "test_protocol_crop", "test_protocol_viewpoints"]
+if TYPE_CHECKING:
+    from pfnet.data.format import CloudSet
+
+__all__ = ["VIEWS", "every_view", "missing_count", "test_protocol_crop", "test_protocol_viewpoints"]
+
+VIEWS: tuple[int, ...] = (1, 5)
+"""How many of the five viewpoints the test protocol may cut each shape at: one (sample ``i``
+at ``VIEWPOINTS[i % 5]``, the paper's) or all five (:func:`every_view`)."""
 
 
 def missing_count(n_points: int, missing_ratio: float) -> int:
@@ -80,3 +88,29 @@ def test_protocol_crop(points: np.ndarray, missing_ratio: float) -> tuple[np.nda
 # Not tests: keep pytest from collecting these where a test module imports them by name.
 test_protocol_crop.__test__ = False  # type: ignore[attr-defined]
 test_protocol_viewpoints.__test__ = False  # type: ignore[attr-defined]
+
+
+def every_view(clouds: CloudSet, views: int) -> CloudSet:
+    """``clouds`` with each shape ``views`` times in a row (one of :data:`VIEWS`), named
+    ``NAME-vV``, so that the test protocol's ``VIEWPOINTS[j % 5]`` (and the scanner's test
+    camera ``j``) cut shape ``i`` at all five viewpoints, as samples ``5 i`` to ``5 i + 4``.
+
+    One cut per shape leaves a mean to the few cuts that go wrong; five give every shape the
+    same weight at every viewpoint. ``views = 1`` returns ``clouds`` itself. A pool of
+    points (``extra``) is dropped: the test protocols use the stored clouds.
+
+    Raises:
+        ConfigError: ``views`` is not one of :data:`VIEWS`.
+    """
+    from pfnet.data.format import CloudSet
+
+    if isinstance(views, bool) or views not in VIEWS:
+        raise ConfigError(f"views must be 1 or 5 (of the five viewpoints), got {views!r}")
+    if views == 1:
+        return clouds
+    names = [f"{name}-v{v}" for name in clouds.name.tolist() for v in range(views)]
+    return CloudSet(
+        np.repeat(np.asarray(clouds.points, np.float32), views, axis=0),
+        np.repeat(clouds.category, views),
+        np.array(names, dtype=str),  # str even for an empty split
+    )

@@ -10,7 +10,7 @@ import torch
 from torch.utils.data import Dataset
 
 from pfnet.data.augment import Augmentation, up_axis_index
-from pfnet.data.crops import missing_count, test_protocol_viewpoints
+from pfnet.data.crops import every_view, missing_count, test_protocol_viewpoints
 from pfnet.data.format import CloudSet, load_split, read_manifest
 from pfnet.data.scan_frame import FRAMES, scan_angle, scan_frame, up_rotation
 from pfnet.data.scanner import scanner_sample, test_sample_rng
@@ -106,6 +106,10 @@ class CompletionDataset(Dataset):
             the test crop and ``turn_test``) what each sample is first turned about by the
             scan protocol's angle for it. ``None``: no test turn, and y for ``aligned``.
         turn_test: Whether the test crop's samples are turned (in a scan frame).
+        views: With a test crop: 1 (the paper's, sample ``i`` at ``VIEWPOINTS[i % 5]``) or
+            5: every shape cut at all five viewpoints, as samples ``5 i`` to ``5 i + 4``
+            (named ``NAME-vV``; :func:`pfnet.data.crops.every_view`), each in a pose of its
+            own under the scan protocol's turn.
 
     Each item is a dict: ``partial`` ``(N - m, 3)``, ``missing`` ``(m, 3)``, ``complete``
     ``(N, 3)`` (for the scanner crops, the partial and the missing points together) float32
@@ -127,6 +131,7 @@ class CompletionDataset(Dataset):
         frame: str = "shape",
         up_axis: int | None = None,
         turn_test: bool = True,
+        views: int = 1,
     ) -> None:
         if frame not in FRAMES:
             raise ConfigError(f"frame must be one of {', '.join(FRAMES)}, got {frame!r}")
@@ -139,7 +144,13 @@ class CompletionDataset(Dataset):
             raise ConfigError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
-        self.clouds: CloudSet = load_split(root, split)
+        if views != 1 and crop not in TEST_CROPS:
+            raise ConfigError(
+                f"views = {views!r} cuts each shape at several viewpoints of a test crop "
+                f"({', '.join(TEST_CROPS)}); a {crop!r} crop draws its own"
+            )
+        self.clouds: CloudSet = every_view(load_split(root, split), views)
+        self.views = views
         self.split = split
         self.crop = crop
         self.seed = seed

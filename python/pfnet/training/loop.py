@@ -188,6 +188,7 @@ class Trainer:
             frame=config.frame,
             up_axis=scan_up_axis(config, val_dir or data_dir),
             turn_test=config.augment_rotate,
+            views=config.val_views,
         )
         if len(self.train_set) == 0:
             raise DataError(f"{data_dir}: the train split is empty")
