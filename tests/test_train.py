@@ -530,6 +530,37 @@ def test_the_weight_average_is_what_validation_scores_and_best_pt_holds(
     assert read_checkpoint(tmp_path / "cli" / "last.pt")["config"]["ema"] == 0.9
 
 
+def test_grad_clip_clips_the_generators_gradient_and_logs_its_norm(tiny_dataset: Path) -> None:
+    from pfnet.data.dataset import CompletionDataset
+    from pfnet.training.batches import CompletionCollate
+    from pfnet.training.step import TrainingStep
+
+    dataset = CompletionDataset(tiny_dataset, "train", crop="viewpoint")
+    batch = CompletionCollate(True, centre_targets=True)([dataset[i] for i in range(4)])
+    config = FAST.replace(model="pfnet-vanilla", width=0.125, n_points=512)
+    steps = {}
+    for clip in (0.0, 1e-6, 1e9):
+        step = TrainingStep(config.replace(grad_clip=clip), _cpu_context())
+        start = {k: v.clone() for k, v in step.generator.state_dict().items()}
+        losses = step(batch, alpha=0.01)
+        grads = [p.grad for p in step.generator.parameters() if p.grad is not None]
+        norm = float(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads])))
+        moved = max(
+            float((v - start[k]).abs().max())
+            for k, v in step.generator.state_dict().items()
+            if k.endswith("weight")
+        )
+        steps[clip] = (losses, norm, moved)
+    plain, clipped, loose = steps[0.0], steps[1e-6], steps[1e9]
+    assert "grad_norm" not in plain[0]  # off: the paper's step, nothing logged
+    assert loose[0]["grad_norm"] == pytest.approx(plain[1], rel=1e-5)  # the norm before
+    assert loose[2] == pytest.approx(plain[2], rel=1e-6)  # a loose bound changes nothing
+    assert clipped[1] == pytest.approx(1e-6, rel=1e-4)  # the gradient stepped with
+    assert clipped[2] < plain[2] / 10  # Adam's first step shrinks once eps dominates
+    with pytest.raises(ConfigError, match=r"grad_clip must be a number >= 0 \(0: off\)"):
+        config.replace(grad_clip=-1.0)
+
+
 def _cpu_context():
     from pfnet.training import distributed
 

@@ -41,6 +41,7 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "lr_step": (int, "StepLR period in epochs"),
     "lr_gamma": (float, "learning-rate factor at each StepLR period or --steps milestone"),
     "adversarial_weight": (float, "λ_adv of the joint loss (paper 0.05)"),
+    "grad_clip": (float, "clip the generator's gradient to this L2 norm (default 0: off)"),
     "workers": (int, "data-loader worker processes, alive for the whole run"),
     "val_views": (
         int,

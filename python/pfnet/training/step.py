@@ -201,6 +201,11 @@ class TrainingStep:
         else:
             loss_g = loss_com
         loss_g.backward()
+        if self.config.grad_clip > 0:  # not in the paper: a lever for small, spiky batches
+            norm = torch.nn.utils.clip_grad_norm_(
+                self.generator.parameters(), self.config.grad_clip
+            )
+            losses["grad_norm"] = float(norm)
         self.optimizer_g.step()
         if self.average is not None:
             self.average.update(self.generator)
