@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.data import load_split
-from pfnet.data.scan_frame import scan_frame, up_rotation
+from pfnet.data.scan_frame import ALIGNED_FRAMES, frame_of, up_rotation
 from pfnet.evaluation.metrics import sample_metrics
 from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint, nearest_neighbors
 
@@ -50,6 +50,11 @@ def main(argv=None) -> None:
     loaded = load_generator(args.checkpoint, runtime="torch", device="cpu")
     n_missing = int(loaded.model.n_missing)
     n_input = int(loaded.model.n_points) - n_missing
+    frame_name = loaded.config.frame  # aligned or aligned-end: the model's own
+    if frame_name not in ALIGNED_FRAMES:
+        raise SystemExit(
+            f"{args.checkpoint} was trained in frame {frame_name!r}, not an aligned one"
+        )
     clouds = load_split(args.data, args.split)
     partials, removed, frames, categories = [], [], [], []
     for i, cloud in enumerate(np.asarray(clouds.points, np.float32)):
@@ -58,7 +63,7 @@ def main(argv=None) -> None:
             partial, missing = crop_by_viewpoint(
                 cloud, np.asarray(VIEWPOINTS[v], np.float32), n_missing=n_missing
             )
-            frame = scan_frame(partial, aligned=True)
+            frame = frame_of(partial, frame_name)
             partials.append(network_input(frame.apply(partial), n_input))
             removed.append(missing)
             frames.append(frame)

@@ -75,7 +75,8 @@ def test_frame_is_a_model_setting_with_a_clear_error():
     assert ModelConfig().frame == "shape"  # model files without the key: the paper's frame
     assert ModelConfig(frame="scan").frame == "scan"
     with pytest.raises(
-        ConfigError, match=r"frame must be one of shape, scan, aligned, heading; got 'world'"
+        ConfigError,
+        match=r"frame must be one of shape, scan, aligned, heading, aligned-end; got 'world'",
     ):
         ModelConfig(frame="world")
 
@@ -321,20 +322,46 @@ def test_aligned_frame_removes_the_heading():
     np.testing.assert_allclose(plain.apply(cloud), scan_normalisation(cloud).apply(cloud))
 
 
-def test_an_aligned_model_completes_any_heading_alike(tmp_path):
+def test_the_aligned_end_frame_points_to_the_sparser_end_at_any_heading():
+    from pfnet.data.scan_frame import END_SHARE, frame_of, scan_frame
+
+    rng = np.random.default_rng(4)
+    bar = rng.uniform([-2.0, -0.3, -0.3], [2.0, 0.3, 0.3], size=(600, 3))
+    # a dense knob out at +x gives the third moment its sign and that end the more points,
+    # so that the two rules point opposite ways
+    knob = rng.normal([3.0, 0.0, 0.0], 0.05, size=(150, 3))
+    bar = np.concatenate([bar, knob])
+    moment = scan_frame(bar, aligned=True).apply(bar)
+    end = scan_frame(bar, aligned=True, sign="end").apply(bar)
+    assert np.mean(moment[:, 0] ** 3) > 0
+    np.testing.assert_allclose(end[:, 0], -moment[:, 0], atol=1e-5)  # half a turn apart
+    x = end[:, 0].astype(np.float64)
+    reach = END_SHARE * (x.max() - x.min())
+    assert (x > x.max() - reach).sum() <= (x < x.min() + reach).sum()  # +x: the sparser end
+    for angle in (0.4, 2.5, 5.0):
+        turned = bar @ up_rotation(angle, 1).T
+        np.testing.assert_allclose(frame_of(turned, "aligned-end").apply(turned), end, atol=1e-4)
+    np.testing.assert_allclose(frame_of(bar, "aligned").apply(bar), moment)
+    np.testing.assert_array_equal(frame_of(bar, "scan").rotation, np.eye(3))
+    with pytest.raises(ConfigError, match="sign must be moment or end, got 'up'"):
+        scan_frame(bar, aligned=True, sign="up")
+
+
+@pytest.mark.parametrize("frame", ["aligned", "aligned-end"])
+def test_an_aligned_model_completes_any_heading_alike(tmp_path, frame):
     import pfnet
     from pfnet.inference.checkpoint import save_checkpoint
     from pfnet.models import build_model
     from pfnet.training.config import preset_config
 
-    config = preset_config("small").replace(n_points=512, frame="aligned")
+    config = preset_config("small").replace(n_points=512, frame=frame)
     torch.manual_seed(1)
     model = build_model(config).eval()
     path = tmp_path / "aligned.pt"
     save_checkpoint(path, {"config": config.to_dict(), "model": model.state_dict()})
     scan = _scan()
     first = pfnet.complete(scan, str(path), runtime="torch", device="cpu")
-    assert first.frame == "aligned"
+    assert first.frame == frame
     turn = up_rotation(1.1, 1)
     turned = pfnet.complete(scan @ turn.T, str(path), runtime="torch", device="cpu")
     np.testing.assert_allclose(turned.missing, first.missing @ turn.T, atol=1e-4)

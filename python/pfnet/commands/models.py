@@ -70,6 +70,8 @@ def _frame_line(config: dict) -> str:
         "gives them",
         "aligned": "aligned: trained on partials in their own frame, turned to their main "
         "horizontal axis, as complete gives them",
+        "aligned-end": "aligned-end: trained on partials in their own frame, turned to their "
+        "main horizontal axis pointing to its sparser end, as complete gives them",
         "heading": "heading: trained on partials in their own centroid and radius and the "
         "data set's heading; complete turns each scan back by the heading a reader reads "
         "from it",

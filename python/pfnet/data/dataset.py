@@ -12,7 +12,7 @@ from torch.utils.data import Dataset
 from pfnet.data.augment import Augmentation, up_axis_index
 from pfnet.data.crops import every_view, missing_count, test_protocol_viewpoints
 from pfnet.data.format import CloudSet, load_split, read_manifest
-from pfnet.data.scan_frame import FRAMES, scan_angle, scan_frame, up_rotation
+from pfnet.data.scan_frame import FRAMES, frame_of, scan_angle, scan_frame, up_rotation
 from pfnet.data.scanner import scanner_sample, test_sample_rng
 from pfnet.errors import ConfigError, DataError
 
@@ -303,7 +303,7 @@ class CompletionDataset(Dataset):
         if self.frame == "heading" and turned:  # read back, as `complete` will read a scan's
             transform = _heading_frame(partial, up_axis, f"{self.split} sample {index}")
         else:  # training partials of the heading frame keep the data set's heading
-            transform = scan_frame(partial, aligned=self.frame == "aligned", up_axis=up_axis)
+            transform = frame_of(partial, self.frame, up_axis=up_axis)
         return (
             transform.apply(partial),
             transform.apply(missing),

@@ -43,8 +43,15 @@ __all__ = [
 # normalises a scan; or ``aligned``, the scan frame turned about the up axis to the partial's
 # main horizontal axis (:func:`scan_frame`); or ``heading``, the scan frame turned back by the
 # heading a heading reader reads from the partial (:mod:`pfnet.data.heading`), for a network
-# trained on partials in the data set's own heading.
-FRAMES = ("shape", "scan", "aligned", "heading")
+# trained on partials in the data set's own heading; ``aligned-end``, ``aligned`` pointing to
+# the sparser end of the main axis instead (:data:`END_SHARE`), where a cut end usually is.
+FRAMES = ("shape", "scan", "aligned", "heading", "aligned-end")
+
+ALIGNED_FRAMES: dict[str, str] = {"aligned": "moment", "aligned-end": "end"}
+"""The aligned frames and the sign rule of each one's main axis (:func:`scan_frame`)."""
+
+END_SHARE = 0.15
+"""The outer share of the main axis's extent whose points the ``end`` rule counts."""
 
 UP_AXES = ("y", "z")
 """The up axes a scan may have: ``y`` (the data sets', SweetHome3D's, OpenGL's) or ``z``
@@ -159,8 +166,20 @@ class ScanFrame:
         return (np.asarray(points, np.float64) @ self.rotation) * self.radius + self.centre
 
 
+def frame_of(partial: np.ndarray, frame: str, *, up_axis: int = 1) -> ScanFrame:
+    """:func:`scan_frame` of ``partial`` for a network trained in ``frame`` (``scan`` or one of
+    :data:`ALIGNED_FRAMES`; ``heading`` needs a reader, ``shape`` the complete shape)."""
+    sign = ALIGNED_FRAMES.get(frame)
+    return scan_frame(partial, aligned=sign is not None, up_axis=up_axis, sign=sign or "moment")
+
+
 def scan_frame(
-    partial: np.ndarray, *, aligned: bool = False, up_axis: int = 1, heading: float | None = None
+    partial: np.ndarray,
+    *,
+    aligned: bool = False,
+    up_axis: int = 1,
+    heading: float | None = None,
+    sign: str = "moment",
 ) -> ScanFrame:
     """The frame a scan-frame network sees ``partial`` in (:data:`FRAMES`).
 
@@ -171,6 +190,11 @@ def scan_frame(
     unknown; this turn is a function of the partial alone, so a network trained in it sees its
     training partials as ``complete`` will show it a scan, with far less of the heading left to
     guess (an elongated bed or car up to a half turn, a round table not at all).
+    ``sign="end"`` (the ``aligned-end`` frame) points the main axis to its sparser end instead:
+    the end with fewer points in the outer :data:`END_SHARE` of the extent (the third moment
+    breaks a tie). A cut end keeps fewer points: on SweetHome3D's test cuts whose hole lies
+    along the main axis it puts the hole on +x in 95 % of them, the third moment in 81 %
+    (``benchmarks/aligned_sign.py``).
 
     ``heading`` (radians, not with ``aligned``): the scan frame turned back by that heading,
     the turn about the up axis that took the data set's frame to the partial's (a heading
@@ -189,6 +213,13 @@ def scan_frame(
         main = vectors[:, int(np.argmax(values))]
         if float(np.mean((flat @ main) ** 3)) < 0:
             main = -main
+        if sign == "end":
+            x = flat @ main
+            reach = END_SHARE * float(x.max() - x.min())
+            if int((x > x.max() - reach).sum()) > int((x < x.min() + reach).sum()):
+                main = -main
+        elif sign != "moment":
+            raise ConfigError(f"scan_frame: sign must be moment or end, got {sign!r}")
         # the turn about the up axis that takes `main` to the first horizontal axis
         rotation = up_rotation(-float(np.arctan2(main[1], main[0])), up_axis)
     return ScanFrame(centre=base.centre, radius=float(base.radius), rotation=rotation)

@@ -55,7 +55,7 @@ def input_frame(points: np.ndarray, frame: str, source: str = "input") -> Any:
     Raises:
         DataError: If all points coincide (no scale to normalise by).
     """
-    from pfnet.data.scan_frame import scan_frame
+    from pfnet.data.scan_frame import frame_of, scan_frame
 
     normalisation(points, source)
     if frame == "heading":  # turned back by the heading the shipped reader reads
@@ -63,7 +63,7 @@ def input_frame(points: np.ndarray, frame: str, source: str = "input") -> Any:
 
         (heading,) = load_reader().headings([scan_frame(points).apply(points)])
         return scan_frame(points, heading=heading)
-    return scan_frame(points, aligned=frame == "aligned")
+    return frame_of(points, frame)
 
 
 def network_input(points: np.ndarray, n_input: int) -> np.ndarray:

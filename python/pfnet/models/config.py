@@ -41,8 +41,9 @@ class ModelConfig:
             :data:`pfnet.data.scan_frame.FRAMES`: ``shape`` (the complete shape's, the paper's;
             what every model file written before the key existed was trained in), ``scan``
             (the partial's own centroid and radius), ``aligned`` (that frame turned to the
-            partial's main horizontal axis) or ``heading`` (the scan frame turned back by the
-            heading :mod:`pfnet.data.heading`'s reader reads).
+            partial's main horizontal axis), ``aligned-end`` (the same, pointing to the
+            axis's sparser end) or ``heading`` (the scan frame turned back by the heading
+            :mod:`pfnet.data.heading`'s reader reads).
     """
 
     model: str = "pfnet"
