@@ -60,6 +60,8 @@ STUDY_SCHEDULES: dict[str, dict[str, Any]] = {
         "alpha_schedule": ((0, 0.01), (20, 0.05), (50, 0.1)),
         "frame": "shape",
         "schedule": "fixed",
+        # the paper's val protocol, one cut per shape, as every published run of the study
+        "val_views": 1,
     },
 }
 
