@@ -8,7 +8,10 @@ prediction mapped back through the same reflection or turn) and scored in the da
 units (CD-L2 ×1000, mean over categories, and the median scan). The rules: the candidate
 whose prediction reaches farthest from the partial (the largest distance of a predicted point
 to its nearest partial point), and the one with the fewest predicted points on the partial
-(within 0.03 of a partial point, in the frame's units).
+(within 0.03 of a partial point, in the frame's units), and the one whose prediction lies
+nearest the partial's mirror images (:func:`pfnet.data.symmetry.mirror_images`: the mean
+distance of a predicted point to its nearest image; a scan without images keeps the frame's
+candidate).
 
     python benchmarks/heading_oracle.py --data data/sh3d --split val --checkpoint sh3d-mirror
 """
@@ -23,6 +26,7 @@ import numpy as np
 
 from pfnet.data import load_split
 from pfnet.data.scan_frame import ALIGNED_FRAMES, frame_of, up_rotation
+from pfnet.data.symmetry import mirror_images
 from pfnet.evaluation.metrics import sample_metrics
 from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint, nearest_neighbors
 
@@ -33,6 +37,16 @@ ON_PARTIAL = 0.03
 def category_mean(values: np.ndarray, categories: np.ndarray) -> float:
     """The mean of the per-category means, as the paper's tables take it."""
     return float(np.mean([values[categories == c].mean() for c in sorted(set(categories))]))
+
+
+def mirror_distance(detail: np.ndarray, images: list[np.ndarray]) -> np.ndarray:
+    """Per scan, the mean distance of a predicted point to the nearest of the scan's mirror
+    images; 0 for a scan without images (every candidate ties, and the first is kept)."""
+    out = np.zeros(len(detail))
+    for i, (points, image) in enumerate(zip(detail, images, strict=True)):
+        if len(image):
+            out[i] = np.sqrt(nearest_neighbors(points.astype(np.float32), image)[0]).mean()
+    return out
 
 
 def main(argv=None) -> None:
@@ -77,7 +91,8 @@ def main(argv=None) -> None:
         "half a turn": half,
         "half a turn, reflected": half @ reflect,
     }
-    scores, reach, on_partial = [], [], []
+    images = [mirror_images(p, up_axis=1) for p in batch]
+    scores, reach, on_partial, off_mirror = [], [], [], []
     for transform in candidates.values():  # orthogonal: its inverse is its transpose
         moved = (batch @ transform.T).astype(np.float32)
         detail = predict_missing(loaded.model, moved, 32, "cpu") @ transform
@@ -86,7 +101,10 @@ def main(argv=None) -> None:
         distance = np.sqrt(nearest_neighbors(detail.astype(np.float32), batch)[0])
         reach.append(distance.max(axis=1))
         on_partial.append((distance < ON_PARTIAL).mean(axis=1))
-    scores, reach, on_partial = (np.stack(v, axis=1) for v in (scores, reach, on_partial))
+        off_mirror.append(mirror_distance(detail, images))
+    scores, reach, on_partial, off_mirror = (
+        np.stack(v, axis=1) for v in (scores, reach, on_partial, off_mirror)
+    )
     scans = np.arange(len(batch))
     categories = np.asarray(categories)
     rows = {name: scores[:, k] for k, name in enumerate(candidates)}
@@ -97,6 +115,11 @@ def main(argv=None) -> None:
         ("the farthest reach, of the four", reach.argmax(axis=1)),
         ("the fewest on the partial, of the two turns", 2 * on_partial[:, [0, 2]].argmin(axis=1)),
         ("the fewest on the partial, of the four", on_partial.argmin(axis=1)),
+        (
+            "the nearest the mirror images, of the two turns",
+            2 * off_mirror[:, [0, 2]].argmin(axis=1),
+        ),
+        ("the nearest the mirror images, of the four", off_mirror.argmin(axis=1)),
     ):
         rows[name] = scores[scans, pick]
     figures = {

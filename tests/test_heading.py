@@ -257,7 +257,17 @@ def test_the_heading_oracle_takes_the_better_candidate(tiny_dataset: Path, tmp_p
     assert two <= figures["as the frame gives it"]["cd_l2"]
     assert two <= figures["half a turn"]["cd_l2"]
     assert four <= two and four <= figures["reflected"]["cd_l2"]
-    for rule in ("the farthest reach", "the fewest on the partial"):  # a pick is no oracle
+    rules = ("the farthest reach", "the fewest on the partial", "the nearest the mirror images")
+    for rule in rules:  # a pick is no oracle
         assert figures[f"{rule}, of the four"]["cd_l2"] >= four
         assert figures[f"{rule}, of the two turns"]["cd_l2"] >= two
     assert 0.0 <= figures["half a turn better"] <= 1.0
+
+
+def test_the_mirror_distance_is_the_mean_distance_to_the_nearest_image() -> None:
+    from scripts import load_script
+
+    distance = load_script("heading_oracle").mirror_distance
+    detail = np.array([[[0.0, 0, 0], [10, 0, 0]], [[0, 0, 0], [0, 0, 0]]], np.float32)
+    images = [np.array([[0.0, 0, 3], [10, 4, 0]], np.float32), np.zeros((0, 3), np.float32)]
+    np.testing.assert_allclose(distance(detail, images), [(3.0 + 4.0) / 2, 0.0], rtol=1e-6)
