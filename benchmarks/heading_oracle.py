@@ -1,6 +1,6 @@
 """What the aligned frame's ambiguities are worth: an aligned model run on each partial as the
 frame gives it, reflected across its main axis, turned by half a turn, and both; the better
-candidate per scan (an oracle), and two rules that pick one from the scan alone.
+candidate per scan (an oracle), and three rules that pick one from the scan alone.
 
 Every shape of the split is cut at each of the five viewpoints (``--views 1``: the test
 protocol's one, ``VIEWPOINTS[i % 5]``), put in its aligned frame, completed each way (the
