@@ -62,7 +62,9 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "init_from": (
         str,
         "fine-tune: start the generator from a best.pt, model file or shipped model's name "
-        "(same model, width and points; fresh optimiser, schedule and discriminator)",
+        "(same model, width and points, or a PF-Net of a width that goes into --width a whole "
+        "number of times, grown to the same function; fresh optimiser, schedule and "
+        "discriminator)",
     ),
 }
 

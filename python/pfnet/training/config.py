@@ -116,7 +116,9 @@ class TrainConfig(ModelConfig):
             (``10min``, ``90s``, ``1h``) or a number of epochs (``5``).
         init_from: Fine-tuning: start the generator from these weights (a ``best.pt``, a
             model file or a shipped model's name) of the same model, width and points,
-            instead of a random initialisation; the optimiser, the schedules and the
+            instead of a random initialisation (a PF-Net-family generator of a width that
+            goes into ``width`` a whole number of times is grown to the same function:
+            :mod:`pfnet.models.widen`); the optimiser, the schedules and the
             discriminator start afresh. ``None``: a fresh network.
     """
 

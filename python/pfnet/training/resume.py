@@ -101,12 +101,20 @@ def check_resumable(state: dict[str, Any], path: Path) -> None:
             )
 
 
+def _widens(trained: float, run: float) -> bool:
+    """Whether a network of width ``run`` is a whole number (2 or more) of ``trained``'s."""
+    ratio = run / trained
+    return ratio > 1.5 and abs(ratio - round(ratio)) < 1e-9
+
+
 def start_from(generator: nn.Module, config: TrainConfig) -> None:
     """Copy the weights ``config.init_from`` names into ``generator`` (fine-tuning).
 
     A PF-Net-family checkpoint trained at another missing ratio starts a run at this one:
     every weight is copied and the detail head's last layer resized
-    (:func:`~pfnet.models.pfnet.resized_detail_head`).
+    (:func:`~pfnet.models.pfnet.resized_detail_head`). One of a narrower width that goes into
+    the run's a whole number of times (0.25 into 0.5 or 1.0) starts a wider network that
+    computes the same function (:func:`~pfnet.models.widen.widened_state`).
 
     Raises:
         ConfigError: The checkpoint is another network (model, width, cloud size, or a
@@ -115,6 +123,7 @@ def start_from(generator: nn.Module, config: TrainConfig) -> None:
     from pfnet.inference.checkpoint import load_checkpoint
     from pfnet.models import build_model
     from pfnet.models.pfnet import resized_detail_head
+    from pfnet.models.widen import LATENT_READER, widened_state
 
     source, trained = load_checkpoint(config.init_from)
     # a model that grows from another (pfnet-mirror from pfnet-vanilla) takes its weights
@@ -130,6 +139,12 @@ def start_from(generator: nn.Module, config: TrainConfig) -> None:
         resized = build_model(trained)
         resized.load_state_dict(resized_detail_head(source.state_dict(), trained.n_missing))
         source = resized
+    if _widens(trained.width, config.width) and LATENT_READER in source.state_dict():
+        # a narrower network of the PF-Net family: the same function at the run's width
+        trained = replace(trained, width=config.width)
+        wide = build_model(trained)
+        wide.load_state_dict(widened_state(source.state_dict(), wide, seed=config.seed))
+        source = wide
     differ = [
         f"{k} {getattr(trained, k)!r} (run: {getattr(config, k)!r})"
         for k in keys
