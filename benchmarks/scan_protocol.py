@@ -24,7 +24,8 @@ cameras): scan ``5 i + v`` is shape ``i`` at viewpoint ``v``, in pose ``5 i + v`
 the scans make a steadier mean: on 54 one-view scans a single scan has moved it by 30.
 
 Besides the means, each result gives the median scan's CD-L2 and the share of the CD-L2 sum
-that the worst tenth of the scans make (a mean that a few scans make says so).
+that the worst tenth of the scans make (a mean that a few scans make says so), and those scans
+by name (``index-category-shape``, as ``--keep`` names its files).
 
     python benchmarks/scan_protocol.py --data data/sh3d [--checkpoint NAME] [--up z] \\
         [--scans scanner] [--views 5] [--json results/scan-protocol/sh3d-small.json]
@@ -138,20 +139,24 @@ def nearest_predictions(scans, up, bank_data, n_points, n_missing):
     ]
 
 
-def score(predictions, removed, categories):
+def score(predictions, removed, categories, labels=None):
     """Per-category and overall means (CD ×1000) of predictions against the removed points,
-    with the median scan's CD-L2 and the worst tenth's share of the CD-L2 sum."""
+    with the median scan's CD-L2 and the worst tenth's share of the CD-L2 sum; with
+    ``labels`` (one per scan), the worst tenth's scans by name."""
     per_sample = sample_metrics(
         [np.asarray(p, np.float32) for p in predictions], list(removed.astype(np.float32))
     )
     table = summarize(per_sample, categories)
-    cd = np.sort(np.asarray(per_sample["cd_l2"], np.float64) * 1000.0)[::-1]
-    worst = max(1, round(len(cd) / 10))
+    cd = np.asarray(per_sample["cd_l2"], np.float64) * 1000.0
+    order = np.argsort(-cd, kind="stable")
+    worst = order[: max(1, round(len(cd) / 10))]
     table["spread"] = {
         "median_cd_l2": float(np.median(cd)),
-        "worst_tenth_share": float(cd[:worst].sum() / cd.sum()) if cd.sum() > 0 else 0.0,
-        "worst_cd_l2": [round(float(v), 2) for v in cd[:worst]],
+        "worst_tenth_share": float(cd[worst].sum() / cd.sum()) if cd.sum() > 0 else 0.0,
+        "worst_cd_l2": [round(float(cd[i]), 2) for i in worst],
     }
+    if labels is not None:
+        table["spread"]["worst_scans"] = [str(labels[i]) for i in worst]
     return table
 
 
@@ -223,6 +228,10 @@ def main(argv=None) -> None:
     points = np.asarray(clouds.points, np.float32)
     partial, removed = test_partials(points, args.scans, args.ratio)
     categories = [str(c) for c in clouds.category]
+    labels = [  # a scan's name: its index in the split, its category and shape
+        f"{i:03d}-{cat}-{name}"
+        for i, (name, cat) in enumerate(zip(clouds.name, categories, strict=True))
+    ]
     poses = [
         scan_pose(i, up=args.up, seed=args.seed, turn=not args.no_turn) for i in range(len(points))
     ]
@@ -232,7 +241,7 @@ def main(argv=None) -> None:
         if not kept:
             sys.exit(f"no {args.split} sample of {args.data} is in {', '.join(args.categories)}")
         partial, removed = partial[kept], removed[kept]
-        categories = [categories[i] for i in kept]
+        categories, labels = [categories[i] for i in kept], [labels[i] for i in kept]
         poses, scans = [poses[i] for i in kept], [scans[i] for i in kept]
         clouds = CloudSet(clouds.points[kept], clouds.category[kept], clouds.name[kept])
         points = points[kept]
@@ -264,12 +273,12 @@ def main(argv=None) -> None:
         results["nearest training crop (learns nothing)"] = [
             pose.invert(c) for pose, c in zip(poses, nearest, strict=True)
         ]
-    tables = {name: score(p, removed, categories) for name, p in results.items()}
+    tables = {name: score(p, removed, categories, labels) for name, p in results.items()}
     if args.keep is not None:  # in the data set's frame, for `pfnet render --sample`
         args.keep.mkdir(parents=True, exist_ok=True)
         mapped_back = results["complete (scan protocol)"]
-        for i, (name, cat) in enumerate(zip(clouds.name, categories, strict=True)):
-            stem = args.keep / f"{i:03d}-{cat}-{name}"
+        for i, label in enumerate(labels):
+            stem = args.keep / label
             np.save(f"{stem}-partial.npy", partial[i].astype(np.float32))
             np.save(f"{stem}-completion.npy", np.asarray(mapped_back[i], np.float32))
             np.save(f"{stem}-removed.npy", removed[i].astype(np.float32))
@@ -299,6 +308,14 @@ def main(argv=None) -> None:
         for n in names
     )
     print("of sum".ljust(10) + share)
+    spread = tables[names[0]]["spread"]
+    print(
+        f"the worst tenth of {names[0]}: "
+        + ", ".join(
+            f"{label} {cd:.1f}"
+            for label, cd in zip(spread["worst_scans"], spread["worst_cd_l2"], strict=True)
+        )
+    )
     wins = None
     if not args.no_mirror:
         model = tables[names[0]]["categories"]

@@ -89,3 +89,10 @@ def test_the_scan_protocol_scores_the_spread_of_its_scans() -> None:
     assert spread["worst_cd_l2"][0] == pytest.approx(
         table["categories"]["a"]["cd_l2"] * 10, rel=1e-4
     )
+    assert "worst_scans" not in spread  # no labels given
+    # with labels, the worst tenth by name, worst first (scan 0, then the next worst)
+    predictions[7] = removed[7] + 0.5
+    labels = [f"scan{i}" for i in range(20)]
+    named = script.score(predictions, removed, ["a"] * 10 + ["b"] * 10, labels)["spread"]
+    assert named["worst_scans"] == ["scan0", "scan7"]
+    assert named["worst_cd_l2"][0] > named["worst_cd_l2"][1]
