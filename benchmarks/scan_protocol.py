@@ -44,7 +44,6 @@ from pathlib import Path
 import numpy as np
 
 from pfnet.data import every_view, load_split, test_protocol_crop
-from pfnet.data.format import CloudSet
 from pfnet.data.scan_frame import UP_AXES, scan_normalisation, scan_pose, to_y_up
 from pfnet.data.scanner import scanner_test_crop
 from pfnet.data.symmetry import mirror_completion
@@ -243,7 +242,6 @@ def main(argv=None) -> None:
         partial, removed = partial[kept], removed[kept]
         categories, labels = [categories[i] for i in kept], [labels[i] for i in kept]
         poses, scans = [poses[i] for i in kept], [scans[i] for i in kept]
-        clouds = CloudSet(clouds.points[kept], clouds.category[kept], clouds.name[kept])
         points = points[kept]
 
     with tempfile.TemporaryDirectory() as tmp:
