@@ -49,7 +49,7 @@ def test_model_list_and_configs_need_no_torch() -> None:
 def test_one_list_of_models_in_the_papers_order() -> None:
     assert MODEL_NAMES == tuple(REGISTRY)
     assert PAPER_MODELS == ("pfnet", "pfnet-vanilla", "mr-cmlp", "cmlp", "mlp")
-    assert set(MODEL_NAMES) - set(PAPER_MODELS) == {"pfnet-mirror"}
+    assert set(MODEL_NAMES) - set(PAPER_MODELS) == {"pfnet-mirror", "pfnet-edge"}
     assert MODEL_TITLES["pfnet-vanilla"] == "PF-Net (vanilla)"
     from pfnet.study import STUDY_MODELS
     from pfnet.study.paper import PAPER_ORDER

@@ -205,7 +205,9 @@ def test_every_registered_model_declares_its_capabilities(name: str) -> None:
     assert all(isinstance(flag, bool) for flag in flags)
     assert cls.adversarial == (name == "pfnet")
     assert cls.multi_stage == name.startswith("pfnet")
-    assert cls.multi_resolution == (name in ("pfnet", "pfnet-vanilla", "pfnet-mirror", "mr-cmlp"))
+    assert cls.multi_resolution == (
+        name in ("pfnet", "pfnet-vanilla", "pfnet-mirror", "pfnet-edge", "mr-cmlp")
+    )
 
 
 def _layers(module: torch.nn.Module, kinds: tuple[type, ...]) -> list[torch.nn.Module]:

@@ -162,9 +162,11 @@ def test_fine_tuning_grows_the_mirror_model_from_a_pfnet_checkpoint_only(tmp_pat
 
 
 @pytest.mark.slow
-def test_the_onnx_export_passes_the_graph_check_and_completes_a_scan(tmp_path):
-    """The plane search exports without the operators the graph check refuses
-    (ConstantOfShape, Range, open slice ends), so ONNX Runtime runs it as torch does."""
+@pytest.mark.parametrize("name", ["pfnet-mirror", "pfnet-edge"])
+def test_the_onnx_export_passes_the_graph_check_and_completes_a_scan(tmp_path, name):
+    """The plane search (and pfnet-edge's neighbour search) exports without the operators the
+    graph check refuses (ConstantOfShape, Range, open slice ends), so ONNX Runtime runs it as
+    torch does."""
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
     from pfnet.cli import main
@@ -172,7 +174,7 @@ def test_the_onnx_export_passes_the_graph_check_and_completes_a_scan(tmp_path):
     from pfnet.inference.onnx_graph import check_graph
     from pfnet.training.config import preset_config
 
-    config = preset_config("small").replace(model="pfnet-mirror", n_points=512, width=0.125)
+    config = preset_config("small").replace(model=name, n_points=512, width=0.125)
     torch.manual_seed(0)
     model = build_model(config).eval()
     checkpoint = tmp_path / "mirror.pt"

@@ -52,6 +52,9 @@ ALLOWED_OPS = frozenset(
         # into tensors that already exist (it makes none from a shape: no ConstantOfShape)
         "Abs", "And", "ArgMax", "Floor", "GatherND", "GreaterOrEqual", "Less", "LessOrEqual",
         "Min", "ReduceMean", "ReduceMin", "ReduceSum", "ScatterElements", "Where",
+        # pfnet-edge's edge score: the nearest neighbours (TopK's outputs are no larger than
+        # its input, whatever K a file gives) and their distances
+        "TopK", "Sqrt", "Clip", "Pow", "ReduceL2",
     }
 )  # fmt: skip
 """Operators a pfnet ONNX export may use (default domain)."""

@@ -48,7 +48,6 @@ from pfnet.models.pfnet import CMLP as _CMLP
 from pfnet.models.pfnet import (
     ENCODER_CMLP_CHANNELS,
     N_SCALES,
-    PFNetVanilla,
     PointPyramidDecoder,
     checked_scale_indices,
 )
@@ -63,12 +62,12 @@ UP_AXIS = 1
 
 
 class CMLP(_CMLP):
-    """PF-Net's CMLP reading :data:`IN_CHANNELS` features per point."""
+    """PF-Net's CMLP reading ``in_channels`` features per point (:data:`IN_CHANNELS`)."""
 
-    def __init__(self, width: float = 1.0) -> None:
+    def __init__(self, width: float = 1.0, in_channels: int = IN_CHANNELS) -> None:
         super().__init__(width, ENCODER_CMLP_CHANNELS)
         first = self.mlp.layers[0][0]
-        self.mlp.layers[0][0] = nn.Conv1d(IN_CHANNELS, first.out_channels, 1)
+        self.mlp.layers[0][0] = nn.Conv1d(in_channels, first.out_channels, 1)
 
 
 # The ONNX export of this model must pass pfnet.inference.onnx_graph's check, which refuses
@@ -175,12 +174,13 @@ class MirrorEncoder(nn.Module):
 
     Args:
         width: Multiplier of every layer's channels.
+        in_channels: Features per point that each CMLP reads (a subclass adds its own).
     """
 
-    def __init__(self, width: float = 1.0) -> None:
+    def __init__(self, width: float = 1.0, in_channels: int = IN_CHANNELS) -> None:
         super().__init__()
         self.planes = MirrorPlanes()
-        self.cmlps = nn.ModuleList([CMLP(width) for _ in range(N_SCALES)])
+        self.cmlps = nn.ModuleList([CMLP(width, in_channels) for _ in range(N_SCALES)])
         self.fuse = nn.Sequential(nn.Conv1d(N_SCALES, 1, 1), nn.BatchNorm1d(1), nn.ReLU())
         self.out_features = self.cmlps[0].out_features
 
@@ -193,14 +193,24 @@ class MirrorEncoder(nn.Module):
             # the first farthest points spread over the whole partial
             samples = gather_points(partial, scale_indices[:, : min(SEARCH_POINTS, n // 2)])
             normals, offsets, shares, grid = self.planes(partial.detach(), samples.detach())
+            context = self._context(partial.detach())
         latents = []
         for s in range(N_SCALES):
-            points = partial if s == 0 else gather_points(partial, scale_indices[:, : n // 2**s])
-            latents.append(
-                self.cmlps[s](self._with_mirrors(points, normals, offsets, shares, grid))
-            )
+            index = None if s == 0 else scale_indices[:, : n // 2**s]
+            points = partial if index is None else gather_points(partial, index)
+            features = self._with_mirrors(points, normals, offsets, shares, grid)
+            latents.append(self.cmlps[s](self._extended(features, context, index)))
         feature_map = torch.stack(latents, dim=1)
         return self.fuse(feature_map).squeeze(1)
+
+    def _context(self, partial: Tensor) -> Tensor | None:
+        """What a subclass computes once from the whole partial for its own channels."""
+        return None
+
+    def _extended(self, features: Tensor, context: Tensor | None, index: Tensor | None) -> Tensor:
+        """A subclass's channels appended to a scale's ``(B, m, 6)`` features (``index``: the
+        scale's points in the partial, ``None`` for all of them)."""
+        return features
 
     @staticmethod
     def _with_mirrors(
@@ -246,17 +256,22 @@ class PFNetMirror(CompletionModel):
         super().__init__()
         self.n_points = n_points
         self.n_missing = n_missing
-        self.encoder = MirrorEncoder(width)
+        self.encoder = self._encoder(width)
         self.decoder = PointPyramidDecoder(self.encoder.out_features, n_missing, width)
+
+    @staticmethod
+    def _encoder(width: float) -> MirrorEncoder:
+        return MirrorEncoder(width)
 
     def forward(self, partial: Tensor, scale_indices: Tensor | None = None) -> Completion:
         """Predict the missing region (the arguments and result of
         :meth:`pfnet.models.pfnet.PFNet.forward`)."""
         return self.decoder(self.encoder(partial, scale_indices))
 
-    def grow_from(self, trained: PFNetVanilla) -> None:
-        """Start from a trained PF-Net generator of the same width and sizes: its weights,
-        with zero weights on the three mirror channels of each CMLP's first layer.
+    def grow_from(self, trained: nn.Module) -> None:
+        """Start from a trained generator of :attr:`grows_from` of the same width and sizes:
+        its weights, with zero weights on the channels of each CMLP's first layer that it
+        does not read (the three mirror channels of a PF-Net, or a subclass's own).
 
         Raises:
             ValueError: A weight of another shape (another width or ``n_missing``).
@@ -267,13 +282,13 @@ class PFNetMirror(CompletionModel):
             if key not in own:
                 raise ValueError(f"weight {key} of the trained generator has no place here")
             target = own[key]
-            # a CMLP's first layer: the same outputs, 3 of its IN_CHANNELS inputs
-            widened = target.ndim == 3 and target.shape[1] == IN_CHANNELS
+            # a CMLP's first layer: the same outputs, the first of its inputs
+            fewer = value.ndim == 3 and value.shape[1] < target.shape[1]
             if target.shape == value.shape:
                 target.copy_(value)
-            elif widened and value.shape == (target.shape[0], 3, target.shape[2]):
+            elif fewer and value.shape[::2] == target.shape[::2]:
                 target.zero_()
-                target[:, :3] = value
+                target[:, : value.shape[1]] = value
             else:
                 raise ValueError(
                     f"weight {key} is {tuple(value.shape)} in the trained generator but "

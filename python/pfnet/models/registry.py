@@ -48,6 +48,10 @@ REGISTRY: dict[str, RegisteredModel] = {
         RegisteredModel(
             "pfnet-mirror", "PF-Net + mirror", "pfnet.models.mirror", "PFNetMirror", paper=False
         ),
+        # not the paper's: PF-Net + mirror also reading each point's edge score (issue 34)
+        RegisteredModel(
+            "pfnet-edge", "PF-Net + mirror + edge", "pfnet.models.edge", "PFNetEdge", paper=False
+        ),
         RegisteredModel("mr-cmlp", "MR-CMLP", "pfnet.models.baselines", "MRCMLPCompletion"),
         RegisteredModel("cmlp", "CMLP", "pfnet.models.baselines", "CMLPCompletion"),
         RegisteredModel("mlp", "MLP", "pfnet.models.baselines", "MLPCompletion"),
