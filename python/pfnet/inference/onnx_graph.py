@@ -54,7 +54,7 @@ ALLOWED_OPS = frozenset(
         "Min", "ReduceMean", "ReduceMin", "ReduceSum", "ScatterElements", "Where",
         # pfnet-edge's edge score: the nearest neighbours (TopK's outputs are no larger than
         # its input, whatever K a file gives) and their distances
-        "TopK", "Sqrt", "Clip", "Pow", "ReduceL2",
+        "TopK", "Sqrt", "Clip", "ReduceL2",
     }
 )  # fmt: skip
 """Operators a pfnet ONNX export may use (default domain)."""
