@@ -6,6 +6,11 @@ the partial, and how the tenth with the highest scores sits against the removed 
   points (chance: 0.1);
 - ``cos``: the cosine between their centroid and the removed points' centroid, both taken
   from the partial's centroid (``hole_side``: the share of cuts where it is positive);
+- ``sphere_cos`` / ``sphere_hole_side``: the same for the centre of a sphere fitted to those
+  points (the crop removes a ball about the viewpoint, so the cut's rim lies on its surface):
+  :data:`TRIALS` spheres through four of them at random, the one with the most of them within
+  :data:`TOLERANCE` of its surface, less :data:`EMPTY_WEIGHT` for each point of the partial
+  inside it (the ball is empty of the partial), radius under :data:`MAX_RADIUS`;
 - the named cuts' own cosines (``--show``), for the scans that the scan protocol's worst tenth
   names.
 
@@ -27,10 +32,46 @@ from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint, nearest_neighbors
 from pfnet.models.edge import NEIGHBOURS, edge_scores
 
 TOP = 0.1  # the share of the partial's points, by edge score, that the probe follows
+TRIALS = 800  # spheres tried per cut
+TOLERANCE = 0.02  # of a sphere's surface, in the data set's units (shapes in the unit ball)
+EMPTY_WEIGHT = 5  # a partial point inside a sphere costs this many rim points on it
+MAX_RADIUS = 3.0
 
 
-def probe(cloud: np.ndarray, view: int, ratio: float = 0.25) -> dict[str, float]:
-    """The two figures of one cut of a complete ``(N, 3)`` cloud at ``VIEWPOINTS[view]``."""
+def _spheres(quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The spheres through ``(T, 4, 3)`` quadruples: centres ``(T, 3)`` and radii ``(T,)``
+    (``inf`` where the four are coplanar)."""
+    a = 2.0 * (quads[:, 1:] - quads[:, :1])
+    b = (quads[:, 1:] ** 2).sum(-1) - (quads[:, :1] ** 2).sum(-1)
+    solvable = np.abs(np.linalg.det(a)) > 1e-9
+    centres = np.zeros((len(quads), 3))
+    centres[solvable] = np.linalg.solve(a[solvable], b[solvable][..., None])[..., 0]
+    radii = np.linalg.norm(quads[:, 0] - centres, axis=1)
+    radii[~solvable] = np.inf
+    return centres, radii
+
+
+def rim_sphere(partial: np.ndarray, rim: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The centre of the sphere that best fits the ``rim`` points and holds none of
+    ``partial`` (the figures of the module's docstring)."""
+    quads = rim[rng.integers(0, len(rim), size=(TRIALS, 4))].astype(np.float64)
+    centres, radii = _spheres(quads)
+    keep = radii < MAX_RADIUS
+    centres, radii = centres[keep], radii[keep]
+    on = np.abs(np.linalg.norm(rim[None] - centres[:, None], axis=2) - radii[:, None])
+    inside = np.linalg.norm(partial[None] - centres[:, None], axis=2) < radii[:, None] - TOLERANCE
+    score = (on < TOLERANCE).sum(axis=1) - EMPTY_WEIGHT * inside.sum(axis=1)
+    return centres[int(np.argmax(score))]
+
+
+def _cos(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
+
+
+def probe(
+    cloud: np.ndarray, view: int, rng: np.random.Generator, ratio: float = 0.25
+) -> dict[str, float]:
+    """The figures of one cut of a complete ``(N, 3)`` cloud at ``VIEWPOINTS[view]``."""
     viewpoint = np.asarray(VIEWPOINTS[view], np.float32)
     partial, missing = crop_by_viewpoint(
         cloud, viewpoint, n_missing=missing_count(len(cloud), ratio)
@@ -40,9 +81,13 @@ def probe(cloud: np.ndarray, view: int, ratio: float = 0.25) -> dict[str, float]
     to_hole = nearest_neighbors(partial, missing)[0]
     near = to_hole < np.quantile(to_hole, TOP)
     centre = partial.mean(axis=0)
-    edge, hole = partial[top].mean(axis=0) - centre, missing.mean(axis=0) - centre
-    cos = float(edge @ hole / (np.linalg.norm(edge) * np.linalg.norm(hole) + 1e-12))
-    return {"near_hole": float(near[top].mean()), "cos": cos}
+    hole = missing.mean(axis=0) - centre
+    sphere = rim_sphere(partial, partial[top], rng) - centre
+    return {
+        "near_hole": float(near[top].mean()),
+        "cos": _cos(partial[top].mean(axis=0) - centre, hole),
+        "sphere_cos": _cos(sphere, hole),
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -54,9 +99,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     split = load_split(args.data, args.split)
     rows, shown = [], {}
+    rng = np.random.default_rng(0)
     for j, cloud in enumerate(np.asarray(split.points, np.float32)):
         for view in range(len(VIEWPOINTS)):
-            row = probe(cloud, view)
+            row = probe(cloud, view, rng)
             rows.append(row)
             if j in args.show and view == j % len(VIEWPOINTS):  # the cut the 54-scan test makes
                 shown[f"{j:03d}-{split.category[j]}"] = row
@@ -71,6 +117,8 @@ def main(argv: list[str] | None = None) -> None:
         "cos_mean": float(cos.mean()),
         "cos_median": float(np.median(cos)),
         "hole_side": float((cos > 0).mean()),
+        "sphere_cos_median": float(np.median([r["sphere_cos"] for r in rows])),
+        "sphere_hole_side": float(np.mean([r["sphere_cos"] > 0 for r in rows])),
         "shown": shown,
     }
     print(json.dumps(out, indent=2))
