@@ -14,8 +14,9 @@ the hole's side of the partial's in 87 % of the cuts (the frame's sign rules man
 **The edge score** of a point (:func:`edge_scores`): the distance from it to the centroid of
 its :data:`NEIGHBOURS` nearest points, over their mean distance from it. It is dimensionless,
 in [0, 1]: near 0 inside a surface sampled evenly, about 0.5 on the rim of a half-disc. It is
-computed once, without gradients, on the whole partial inside :meth:`EdgeEncoder.forward`, so
-every path that runs a generator gets it; each scale's points take their own scores.
+computed once per forward pass, without gradients, on the whole partial (the encoder's
+``_context`` hook of :class:`pfnet.models.mirror.MirrorEncoder`), so every path that runs a
+generator gets it; each scale's points take their own scores.
 
 **Input.** :class:`pfnet.models.mirror.MirrorEncoder`'s six channels and a seventh: the
 point's edge score, 0 on the mirror images. :meth:`PFNetEdge.grow_from` starts it from a
