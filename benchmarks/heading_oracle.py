@@ -13,7 +13,14 @@ nearest the partial's mirror images (:func:`pfnet.data.symmetry.mirror_images`: 
 distance of a predicted point to its nearest image; a scan without images keeps the frame's
 candidate).
 
-    python benchmarks/heading_oracle.py --data data/sh3d --split val --checkpoint sh3d-mirror
+With ``--bank DATA`` two more rules use shape knowledge instead of the scan's geometry: each
+scan is looked up among DATA's training shapes cut at the five viewpoints from eight sides
+(:mod:`pfnet.evaluation.nearest`), and the candidate whose prediction lies nearest the
+nearest crop's missing points (their symmetric mean distance) is picked; or each of the
+``--votes`` nearest crops votes for the candidate nearest its missing points.
+
+    python benchmarks/heading_oracle.py --data data/sh3d --split val --checkpoint sh3d-mirror \
+        [--bank data/sh3d-all]
 """
 
 from __future__ import annotations
@@ -49,6 +56,29 @@ def mirror_distance(detail: np.ndarray, images: list[np.ndarray]) -> np.ndarray:
     return out
 
 
+def symmetric_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """The mean distance of ``a``'s points to ``b`` plus that of ``b``'s to ``a``."""
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    return float(
+        np.sqrt(nearest_neighbors(a, b)[0]).mean() + np.sqrt(nearest_neighbors(b, a)[0]).mean()
+    )
+
+
+def retrieved_holes(bank_data: Path, partials, frames, n_points, n_missing, votes):
+    """Per scan, the missing points of its ``votes`` nearest training crops, best first, in
+    the scan's model frame (the look-up runs in the partial's own aligned frame)."""
+    from pfnet.evaluation.nearest import crop_bank, nearest_crops
+
+    clouds = np.asarray(load_split(bank_data, "train").points, np.float32)[:, :n_points]
+    bank = crop_bank(clouds, n_missing)
+    holes = []
+    for partial, frame in zip(partials, frames, strict=True):
+        aligned = frame_of(partial, "aligned")
+        found = nearest_crops(bank, aligned.apply(partial), votes)
+        holes.append([frame.apply(aligned.invert(bank.missing[i] @ turn)) for _, i, turn in found])
+    return holes
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
@@ -56,6 +86,8 @@ def main(argv=None) -> None:
     parser.add_argument("--checkpoint", default="sh3d-mirror")
     parser.add_argument("--views", type=int, choices=(1, 5), default=5)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--bank", type=Path, default=None, help="training shapes to look up")
+    parser.add_argument("--votes", type=int, default=8)
     args = parser.parse_args(argv)
 
     from pfnet.inference.predict import network_input, predict_missing
@@ -70,7 +102,7 @@ def main(argv=None) -> None:
             f"{args.checkpoint} was trained in frame {frame_name!r}, not an aligned one"
         )
     clouds = load_split(args.data, args.split)
-    partials, removed, frames, categories = [], [], [], []
+    partials, originals, removed, frames, categories = [], [], [], [], []
     for i, cloud in enumerate(np.asarray(clouds.points, np.float32)):
         views = range(5) if args.views == 5 else [i % 5]
         for v in views:
@@ -79,6 +111,7 @@ def main(argv=None) -> None:
             )
             frame = frame_of(partial, frame_name)
             partials.append(network_input(frame.apply(partial), n_input))
+            originals.append(partial)
             removed.append(missing)
             frames.append(frame)
             categories.append(str(clouds.category[i]))
@@ -92,7 +125,12 @@ def main(argv=None) -> None:
         "half a turn, reflected": half @ reflect,
     }
     images = [mirror_images(p, up_axis=1) for p in batch]
-    scores, reach, on_partial, off_mirror = [], [], [], []
+    holes = None
+    if args.bank is not None:
+        holes = retrieved_holes(
+            args.bank, originals, frames, clouds.points.shape[1], n_missing, args.votes
+        )
+    scores, reach, on_partial, off_mirror, off_holes = [], [], [], [], []
     for transform in candidates.values():  # orthogonal: its inverse is its transpose
         moved = (batch @ transform.T).astype(np.float32)
         detail = predict_missing(loaded.model, moved, 32, "cpu") @ transform
@@ -102,6 +140,13 @@ def main(argv=None) -> None:
         reach.append(distance.max(axis=1))
         on_partial.append((distance < ON_PARTIAL).mean(axis=1))
         off_mirror.append(mirror_distance(detail, images))
+        if holes is not None:
+            off_holes.append(
+                [
+                    [symmetric_distance(d, h) for h in hs]
+                    for d, hs in zip(detail, holes, strict=True)
+                ]
+            )
     scores, reach, on_partial, off_mirror = (
         np.stack(v, axis=1) for v in (scores, reach, on_partial, off_mirror)
     )
@@ -122,6 +167,17 @@ def main(argv=None) -> None:
         ("the nearest the mirror images, of the four", off_mirror.argmin(axis=1)),
     ):
         rows[name] = scores[scans, pick]
+    if holes is not None:
+        off_holes = np.asarray(off_holes)  # (candidate, scan, crop)
+        nearest = off_holes[:, :, 0].T
+        ballots = off_holes.argmin(axis=0)  # (scan, crop): each crop's candidate
+        tally = np.stack([(ballots == k).sum(axis=1) for k in range(4)], axis=1)
+        for name, pick in (
+            ("the nearest the retrieved hole, of the two turns", 2 * nearest[:, [0, 2]].argmin(1)),
+            ("the nearest the retrieved hole, of the four", nearest.argmin(axis=1)),
+            (f"the vote of {args.votes} retrieved holes, of the four", tally.argmax(axis=1)),
+        ):
+            rows[name] = scores[scans, pick]
     figures = {
         name: {"cd_l2": category_mean(v, categories), "median_cd_l2": float(np.median(v))}
         for name, v in rows.items()
@@ -132,6 +188,8 @@ def main(argv=None) -> None:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         document = {"data": str(args.data), "split": args.split, "views": args.views}
+        if args.bank is not None:
+            document.update(bank=str(args.bank), votes=args.votes)
         document.update(checkpoint=args.checkpoint, figures=figures)
         args.json.write_text(json.dumps(document, indent=2) + "\n")
 

@@ -7,7 +7,7 @@ import pytest
 
 from pfnet.data.scan_frame import up_rotation
 from pfnet.evaluation import nearest
-from pfnet.evaluation.nearest import crop_bank, descriptor, nearest_completion
+from pfnet.evaluation.nearest import crop_bank, descriptor, nearest_completion, nearest_crops
 from pfnet.geometry import VIEWPOINTS, chamfer, crop_by_viewpoint
 
 
@@ -64,6 +64,30 @@ def test_the_shortlist_of_the_whole_bank_is_the_exhaustive_search() -> None:
         for j, c in enumerate(bank.partials)
     )
     assert index == best[1]
+
+
+def test_the_nearest_crops_are_the_exhaustive_ranking_best_first() -> None:
+    """``nearest_crops`` with the whole bank shortlisted: the ``count`` least Chamfer distances
+    over the bank and both half turns, in order, each with the turn that makes its distance."""
+    from pfnet.data.scan_frame import scan_frame
+
+    shapes = _shapes()
+    bank = crop_bank(shapes[:3], 64, turns=2, seed=1)
+    scan = crop_by_viewpoint(shapes[3], np.asarray(VIEWPOINTS[2], np.float32), n_missing=64)[0]
+    seen = scan_frame(scan, aligned=True).apply(scan)
+    found = nearest_crops(bank, seen, 5, shortlist=len(bank.shapes))
+    brute = sorted(
+        float(sum(chamfer(nearest._samples(seen @ up_rotation(np.pi * h, 1).T), c)))
+        for h in (0, 1)
+        for c in bank.partials
+    )
+    assert len(found) == 5
+    np.testing.assert_allclose([d for d, _, _ in found], brute[:5], rtol=1e-5)
+    for distance, index, turn in found:
+        query = nearest._samples(seen @ turn.T)
+        assert float(sum(chamfer(query, bank.partials[index]))) == pytest.approx(distance, 1e-5)
+    assert nearest_crops(bank, seen, 1000, shortlist=4)[-1][0] >= found[0][0]
+    assert len(nearest_crops(bank, seen, 1000, shortlist=4)) == 8  # both turns' shortlists
 
 
 def test_the_descriptor_is_the_root_of_the_cells_shares() -> None:

@@ -88,14 +88,14 @@ def crop_bank(clouds: np.ndarray, n_missing: int, *, turns: int = 8, seed: int =
     )
 
 
-def nearest_completion(
-    bank: CropBank, scan: np.ndarray, *, shortlist: int = SHORTLIST
-) -> tuple[np.ndarray, int]:
-    """The missing points of the crop nearest a y-up ``scan``, in the scan's coordinates,
-    and that crop's index in the bank."""
-    frame = scan_frame(scan, aligned=True)
-    seen = frame.apply(scan)
-    best = None
+def nearest_crops(
+    bank: CropBank, seen: np.ndarray, count: int = 1, *, shortlist: int = SHORTLIST
+) -> list[tuple[float, int, np.ndarray]]:
+    """The ``count`` crops of the bank nearest ``seen`` (a scan already in its aligned frame),
+    best first, looked up as given and turned by half a turn: for each its Chamfer distance,
+    its index in the bank and the turn that takes the bank's frame to ``seen``'s (its missing
+    points in ``seen``'s frame are ``bank.missing[index] @ turn``)."""
+    found = []
     for half_turns in (0, 1):
         turn = up_rotation(np.pi * half_turns, 1).astype(np.float32)
         query = seen @ turn.T
@@ -103,9 +103,16 @@ def nearest_completion(
         top = np.argsort(gaps, kind="stable")[: min(shortlist, len(gaps))]
         samples = np.broadcast_to(_samples(query), (len(top), SAMPLES, 3)).copy()
         to_crop, to_query = chamfer(samples, bank.partials[top])
-        distance = to_crop + to_query
-        j = int(np.argmin(distance))
-        if best is None or distance[j] < best[0]:
-            best = (float(distance[j]), int(top[j]), turn)
-    _, index, turn = best
+        found += [(float(d), int(i), turn) for d, i in zip(to_crop + to_query, top, strict=True)]
+    found.sort(key=lambda entry: entry[0])  # stable: ties keep the unturned look-up first
+    return found[:count]
+
+
+def nearest_completion(
+    bank: CropBank, scan: np.ndarray, *, shortlist: int = SHORTLIST
+) -> tuple[np.ndarray, int]:
+    """The missing points of the crop nearest a y-up ``scan``, in the scan's coordinates,
+    and that crop's index in the bank."""
+    frame = scan_frame(scan, aligned=True)
+    _, index, turn = nearest_crops(bank, frame.apply(scan), shortlist=shortlist)[0]
     return frame.invert(bank.missing[index] @ turn), index
