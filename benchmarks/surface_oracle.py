@@ -39,7 +39,9 @@ from pfnet.evaluation.scoring import SCALE
 from pfnet.geometry import crop_by_viewpoint
 from pfnet.io.files import atomic_path
 
-MESH_SOURCES = ("sweethome3d", "procedural")
+MESH_SOURCES = ("sweethome3d", "procedural", "flightgear", "torcs", "crrcsim", "sweethome3d-app")
+"""Source formats whose shapes are always meshes (``meshes`` folders may hold point files).
+A data set of several sources qualifies when each of them is one of these."""
 
 
 def oracle_scores(
@@ -59,10 +61,18 @@ def oracle_scores(
         DataError: The data set has no pool of fresh surface samples, or the split no shapes.
         ConfigError: A bad missing ratio.
     """
-    source = read_manifest(data).get("source", {}).get("format")
-    if source not in MESH_SOURCES:
+    source = read_manifest(data).get("source", {})
+    formats = [s.get("format") for s in source.get("sources", [source])]
+    unfit = [f for f in formats if f not in MESH_SOURCES]
+    if source.get("format") == "several" and unfit:
         raise DataError(
-            f"{data}: prepared from {source!r}; only mesh sources ({', '.join(MESH_SOURCES)}) "
+            f"{data}: prepared from several sources, among them {', '.join(map(repr, unfit))}; "
+            f"only mesh sources ({', '.join(MESH_SOURCES)}) have pools that are fresh samples "
+            "of the surface"
+        )
+    if unfit:
+        raise DataError(
+            f"{data}: prepared from {unfit[0]!r}; only mesh sources ({', '.join(MESH_SOURCES)}) "
             "have pools that are fresh samples of the surface"
         )
     clouds = load_split(data, split)

@@ -122,3 +122,30 @@ def test_at_high_ratios_the_floor_is_the_whole_partial_input(surface_oracle, poo
     )
     assert scores["floor"]["mean"]["pred_to_gt"] == pytest.approx(expected, rel=1e-4)
     assert scores["oracle"]["mean"]["cd_l2"] < scores["floor"]["mean"]["cd_l2"] / 5
+
+
+def test_several_mesh_sources_qualify_and_one_point_source_among_them_does_not(
+    surface_oracle, pooled, tmp_path, capsys
+):
+    """open-shapes' airplanes come from FlightGear and crrcsim (AC3D meshes): their pools are
+    fresh surface samples; a ``meshes`` folder among the sources may be point files."""
+    import shutil
+
+    several = tmp_path / "several"
+    shutil.copytree(pooled, several)
+    manifest = json.loads((several / "manifest.json").read_text())
+    sources = [{"format": "flightgear", "path": "/fg"}, {"format": "crrcsim", "path": "/cs"}]
+    manifest["source"] = {"format": "several", "sources": sources}
+    (several / "manifest.json").write_text(json.dumps(manifest))
+    scores = {}
+    for name, data in (("several", several), ("procedural", pooled)):
+        out = tmp_path / f"{name}.json"
+        assert surface_oracle.main(["--data", str(data), "--json", str(out)]) == 0
+        scores[name] = json.loads(out.read_text())["oracle"]
+    assert scores["several"] == scores["procedural"]  # the same clouds, the same scores
+    sources.append({"format": "meshes", "path": "/mine"})
+    (several / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(
+        SystemExit, match=r"^error: .*prepared from several sources, among them 'meshes'; only"
+    ):
+        surface_oracle.main(["--data", str(several)])
