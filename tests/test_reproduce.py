@@ -512,3 +512,25 @@ def _check_published_run(folder: Path, run: dict) -> None:
     assert config["model"] == run["model"] and config["missing_ratio"] == run["missing_ratio"]
     assert config["seed"] == run["seed"] and config["steps"] == run["steps"]
     assert run["plateau"] == plateau(run["curve"]["val_cd_l2"])
+
+
+def test_dataset_summary_names_the_catalogues_of_several_sources():
+    """A data set of FlightGear's and crrcsim's airplanes is named by its catalogues (not
+    ``several``), and by the sources' short names when the catalogues' would be too long."""
+    from pfnet.study.orchestrate import _dataset_summary
+
+    licences = [
+        {"source": "flightgear", "catalogue": "FlightGear models", "license": "GPL-2+"},
+        {"source": "crrcsim", "catalogue": "crrcsim model aircraft", "license": "GPL-2"},
+    ]
+    manifest = {
+        "source": {"format": "several", "sources": []},
+        "points": 2048,
+        "splits": {"train": {"total": 3}, "val": {"total": 1}, "test": {"total": 1}},
+        "licenses": licences,
+    }
+    summary = _dataset_summary(manifest)
+    assert summary["source"] == "FlightGear models and crrcsim model aircraft"
+    assert summary["credits"] == ["FlightGear models (GPL-2+)", "crrcsim model aircraft (GPL-2)"]
+    licences[0]["catalogue"] = "x" * 200
+    assert _dataset_summary(manifest)["source"] == "flightgear and crrcsim"

@@ -277,8 +277,14 @@ def _machine(device: str, threads: int | None = None) -> dict[str, Any]:
 def _dataset_summary(manifest: dict[str, Any]) -> dict[str, Any]:
     splits = manifest["splits"]
     source = manifest.get("source") or {}
+    title = SOURCE_TITLES.get(source.get("format"))
+    if title is None:  # the open-shapes sources, or several of them: their catalogues' names
+        licences = manifest.get("licenses") or []
+        title = " and ".join(x["catalogue"] for x in licences if x.get("catalogue"))
+        if not title or len(title) > 200:  # the record's limit: the sources' short names
+            title = " and ".join(str(x.get("source")) for x in licences) or source.get("format")
     return {
-        "source": SOURCE_TITLES.get(source.get("format"), source.get("format")),
+        "source": title,
         "points": manifest["points"],
         "splits": {name: split["total"] for name, split in splits.items()},
         "credits": [
