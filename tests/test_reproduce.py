@@ -29,6 +29,8 @@ from pfnet.training.config import TrainConfig
 ROOT = Path(__file__).resolve().parent.parent
 PUBLISHED = ROOT / "results" / "study"
 RESULTS_PAGE = ROOT / "docs" / "results.md"  # the study's section, between its markers
+AIRPLANES = ROOT / "results" / "airplanes-table5"  # Table 5 on open-shapes' airplanes
+AIRPLANES_PAGE = ROOT / "docs" / "airplanes.md"
 
 
 def test_study_runs_are_the_ablation_then_the_ratios_seed_by_seed():
@@ -534,3 +536,22 @@ def test_dataset_summary_names_the_catalogues_of_several_sources():
     assert summary["credits"] == ["FlightGear models (GPL-2+)", "crrcsim model aircraft (GPL-2)"]
     licences[0]["catalogue"] = "x" * 200
     assert _dataset_summary(manifest)["source"] == "flightgear and crrcsim"
+
+
+@pytest.mark.skipif(not (AIRPLANES / "results.json").is_file(), reason="no published airplanes")
+def test_airplanes_page_is_its_published_record():
+    """docs/airplanes.md's section is generated from results/airplanes-table5, whose files
+    agree with it; the anchors' figures quoted in the page are the anchors' JSON files."""
+    results = json.loads((AIRPLANES / "results.json").read_text())
+    assert readme_section(AIRPLANES_PAGE) == render_report(results, "airplanes/").strip("\n")
+    record = read_results(AIRPLANES / "results.json")
+    assert (AIRPLANES / "results.md").read_text() == render_report(record)
+    assert {run["model"] for run in record["runs"]} == {"pfnet"}
+    assert {run["missing_ratio"] for run in record["runs"]} == {0.25, 0.5, 0.75}
+    for run in record["runs"]:
+        _check_published_run(AIRPLANES / "runs" / run["name"], run)
+    page = AIRPLANES_PAGE.read_text()
+    for ratio in ("0.25", "0.5", "0.75"):
+        oracle = json.loads((AIRPLANES / "anchors" / f"surface-oracle-{ratio}.json").read_text())
+        assert f"{oracle['oracle']['mean']['cd_l2']:.3f}" in page, ratio
+        assert f"{oracle['floor']['mean']['cd_l2']:.2f}" in page, ratio
