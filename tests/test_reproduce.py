@@ -538,6 +538,36 @@ def test_dataset_summary_names_the_catalogues_of_several_sources():
     assert _dataset_summary(manifest)["source"] == "flightgear and crrcsim"
 
 
+@pytest.mark.skipif(
+    not (AIRPLANES / "ablation" / "results.json").is_file(), reason="no published ablation"
+)
+def test_airplanes_ablation_section_is_its_published_record():
+    """The five-model ablation on airplanes: its record's files agree with its results.json,
+    and the page's tables are the record's tables, word for word."""
+    folder = AIRPLANES / "ablation"
+    record = read_results(folder / "results.json")
+    assert (folder / "results.md").read_text() == render_report(record)
+    assert {run["model"] for run in record["runs"]} == {
+        "pfnet",
+        "pfnet-vanilla",
+        "mr-cmlp",
+        "cmlp",
+        "mlp",
+    }
+    assert {run["missing_ratio"] for run in record["runs"]} == {0.25}
+    for run in record["runs"]:
+        _check_published_run(folder / "runs" / run["name"], run)
+    section = AIRPLANES_PAGE.read_text().split("## The five models at 25 % missing")[1]
+    blocks = [
+        block
+        for block in (folder / "results.md").read_text().split("\n\n")
+        if block.startswith(("| category", "| the paper's claim", "| setting", "Ranking by"))
+    ]
+    assert len(blocks) == 5
+    for block in blocks:
+        assert block in section, block[:60]
+
+
 @pytest.mark.skipif(not (AIRPLANES / "results.json").is_file(), reason="no published airplanes")
 def test_airplanes_page_is_its_published_record():
     """docs/airplanes.md's section is generated from results/airplanes-table5, whose files
