@@ -12,7 +12,9 @@ points to (all cuts, and those whose hole lies mostly along the main axis: ``|x|
 
 - ``third moment``: the frame's own sign;
 - ``farther reach``: towards the extreme point farther from the centroid;
-- ``sparser end``: towards the end with fewer points in its outer ``END_SHARE`` of the extent.
+- ``sparser end``: towards the end with fewer points in its outer ``END_SHARE`` of the extent;
+- ``rim``: towards the side of the cut's rim, the centroid of the tenth of the points with the
+  highest edge scores (:func:`pfnet.data.rim.rim_centroid`; the ``aligned-rim`` frame).
 
     python benchmarks/aligned_sign.py --data data/sh3d --split train [--json FILE]
 """
@@ -27,6 +29,7 @@ import numpy as np
 
 from pfnet.data import every_view, load_split
 from pfnet.data.crops import missing_count
+from pfnet.data.rim import rim_centroid
 from pfnet.data.scan_frame import scan_frame
 from pfnet.geometry import VIEWPOINTS, crop_by_viewpoint
 
@@ -34,11 +37,12 @@ ALONG = 0.6
 """A hole lies along the main axis when ``|x| / (|x| + |z|)`` of its centroid exceeds this."""
 END_SHARE = 0.15
 """The outer share of the partial's extent along x that the sparser-end rule counts."""
-RULES = ("third moment", "farther reach", "sparser end")
+RULES = ("third moment", "farther reach", "sparser end", "rim")
 
 
-def rule_signs(x: np.ndarray) -> dict[str, float]:
-    """The side (+1 or -1) each rule points to, from the partial's x coordinates in its frame."""
+def rule_signs(x: np.ndarray, rim_x: float) -> dict[str, float]:
+    """The side (+1 or -1) each rule points to, from the partial's x coordinates in its frame
+    and that of its rim's centroid."""
     span = float(x.max() - x.min())
     low = int((x < x.min() + END_SHARE * span).sum())
     high = int((x > x.max() - END_SHARE * span).sum())
@@ -46,6 +50,7 @@ def rule_signs(x: np.ndarray) -> dict[str, float]:
         "third moment": 1.0,  # the frame has already turned it to +x
         "farther reach": 1.0 if x.max() + x.min() >= 0 else -1.0,
         "sparser end": 1.0 if high <= low else -1.0,
+        "rim": 1.0 if rim_x >= 0 else -1.0,
     }
 
 
@@ -61,8 +66,9 @@ def cut_rows(points: np.ndarray, ratio: float = 0.25) -> list[dict]:
         frame = scan_frame(partial, aligned=True, up_axis=1)
         hole = frame.apply(missing).astype(np.float64).mean(axis=0)
         x = frame.apply(partial).astype(np.float64)[:, 0]
+        rim_x = float(frame.apply(rim_centroid(partial)[None])[0, 0])
         along = abs(hole[0]) / (abs(hole[0]) + abs(hole[2]) + 1e-12)
-        rows.append({"hole": 1.0 if hole[0] >= 0 else -1.0, "along": along, **rule_signs(x)})
+        rows.append({"hole": 1.0 if hole[0] >= 0 else -1.0, "along": along, **rule_signs(x, rim_x)})
     return rows
 
 

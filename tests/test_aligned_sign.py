@@ -14,23 +14,37 @@ script = load_script("aligned_sign")
 
 def test_the_rules_point_to_the_farther_and_the_sparser_end() -> None:
     x = np.array([-1.0, -0.9, -0.8, 0.0, 0.5, 2.0])  # reaches to 2, three points at -1 end
-    assert script.rule_signs(x) == {"third moment": 1.0, "farther reach": 1.0, "sparser end": 1.0}
-    assert script.rule_signs(-x) == {
+    assert script.rule_signs(x, 0.3) == {
+        "third moment": 1.0,
+        "farther reach": 1.0,
+        "sparser end": 1.0,
+        "rim": 1.0,
+    }
+    assert script.rule_signs(-x, -0.3) == {
         "third moment": 1.0,
         "farther reach": -1.0,
         "sparser end": -1.0,
+        "rim": -1.0,
     }
 
 
 def test_agreement_counts_the_cuts_whose_hole_is_on_the_rules_side() -> None:
     rows = [
-        {"hole": 1.0, "along": 0.9, "third moment": 1.0, "farther reach": -1.0, "sparser end": 1.0},
+        {
+            "hole": 1.0,
+            "along": 0.9,
+            "third moment": 1.0,
+            "farther reach": -1.0,
+            "sparser end": 1.0,
+            "rim": 1.0,
+        },
         {
             "hole": -1.0,
             "along": 0.9,
             "third moment": 1.0,
             "farther reach": -1.0,
             "sparser end": 1.0,
+            "rim": 1.0,
         },
         {
             "hole": -1.0,
@@ -38,6 +52,7 @@ def test_agreement_counts_the_cuts_whose_hole_is_on_the_rules_side() -> None:
             "third moment": 1.0,
             "farther reach": -1.0,
             "sparser end": -1.0,
+            "rim": -1.0,
         },
     ]
     table = script.agreement(rows, np.array(["a", "a", "b"]))

@@ -76,7 +76,8 @@ def test_frame_is_a_model_setting_with_a_clear_error():
     assert ModelConfig(frame="scan").frame == "scan"
     with pytest.raises(
         ConfigError,
-        match=r"frame must be one of shape, scan, aligned, heading, aligned-end; got 'world'",
+        match=r"frame must be one of shape, scan, aligned, heading, aligned-end, aligned-rim, "
+        r"rim; got 'world'",
     ):
         ModelConfig(frame="world")
 
@@ -343,7 +344,7 @@ def test_the_aligned_end_frame_points_to_the_sparser_end_at_any_heading():
         np.testing.assert_allclose(frame_of(turned, "aligned-end").apply(turned), end, atol=1e-4)
     np.testing.assert_allclose(frame_of(bar, "aligned").apply(bar), moment)
     np.testing.assert_array_equal(frame_of(bar, "scan").rotation, np.eye(3))
-    with pytest.raises(ConfigError, match="sign must be moment or end, got 'up'"):
+    with pytest.raises(ConfigError, match="sign must be moment, end or rim, got 'up'"):
         scan_frame(bar, aligned=True, sign="up")
 
 

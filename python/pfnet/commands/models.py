@@ -72,6 +72,11 @@ def _frame_line(config: dict) -> str:
         "horizontal axis, as complete gives them",
         "aligned-end": "aligned-end: trained on partials in their own frame, turned to their "
         "main horizontal axis pointing to its sparser end, as complete gives them",
+        "aligned-rim": "aligned-rim: trained on partials in their own frame, turned to their "
+        "main horizontal axis, the quarter turn that brings the cut's rim nearest +x, as "
+        "complete gives them",
+        "rim": "rim: trained on partials in their own frame, turned so that the cut's rim "
+        "lies at +x, as complete gives them",
         "heading": "heading: trained on partials in their own centroid and radius and the "
         "data set's heading; complete turns each scan back by the heading a reader reads "
         "from it",

@@ -103,7 +103,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="frame of the network's input: scan, the partial's own centroid and radius (what "
         "pfnet complete gives a model; the small preset's default); aligned, that frame "
         "turned about the up axis to the partial's main horizontal axis; aligned-end, the same "
-        "pointing to the axis's sparser end, where a cut usually is; heading, the scan "
+        "pointing to the axis's sparser end, where a cut usually is; aligned-rim, the same "
+        "given the quarter turn that brings the cut's rim (where points have neighbours on "
+        "one side only) nearest +x; rim, the scan frame turned so that the rim lies at +x; "
+        "heading, the scan "
         "frame in the data set's own heading, validated on turned partials read back by the "
         "shipped heading reader (train with --crop turned); or shape, the complete shape's "
         "(the paper's protocol; the paper preset's default)",

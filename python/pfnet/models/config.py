@@ -42,7 +42,9 @@ class ModelConfig:
             what every model file written before the key existed was trained in), ``scan``
             (the partial's own centroid and radius), ``aligned`` (that frame turned to the
             partial's main horizontal axis), ``aligned-end`` (the same, pointing to the
-            axis's sparser end) or ``heading`` (the scan frame turned back by the heading
+            axis's sparser end), ``aligned-rim`` (turned by the quarter turn that brings the
+            cut's rim nearest +x), ``rim`` (the scan frame turned so that the rim lies at +x)
+            or ``heading`` (the scan frame turned back by the heading
             :mod:`pfnet.data.heading`'s reader reads).
     """
 
