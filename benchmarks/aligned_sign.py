@@ -14,7 +14,8 @@ points to (all cuts, and those whose hole lies mostly along the main axis: ``|x|
 - ``farther reach``: towards the extreme point farther from the centroid;
 - ``sparser end``: towards the end with fewer points in its outer ``END_SHARE`` of the extent;
 - ``rim``: towards the side of the cut's rim, the centroid of the tenth of the points with the
-  highest edge scores (:func:`pfnet.data.rim.rim_centroid`; the ``aligned-rim`` frame).
+  highest edge scores (:func:`pfnet.data.rim.rim_centroid`). The ``aligned-rim`` frame uses
+  the rim to choose among four directions, not two: ``benchmarks/frame_hole.py``.
 
     python benchmarks/aligned_sign.py --data data/sh3d --split train [--json FILE]
 """

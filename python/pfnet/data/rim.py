@@ -8,8 +8,8 @@ distance from it to the centroid of its :data:`NEIGHBOURS` nearest points over t
 distance from it, in [0, 1] (0 inside an evenly sampled surface, about 0.5 on the rim of a
 half-disc). **The rim** is the :data:`RIM_SHARE` of the points with the highest scores; on
 SweetHome3D's five-view test cuts their centroid lies on the hole's side of the partial's in
-87 % of the cuts (``benchmarks/edge_probe.py``), and the ``aligned-rim`` frame
-(:func:`pfnet.data.scan_frame.scan_frame`) points its main axis to the rim's side.
+87 % of the cuts (``benchmarks/edge_probe.py``). The ``aligned-rim`` and ``rim`` frames
+(:func:`pfnet.data.scan_frame.frame_of`) turn the rim's side to +x.
 """
 
 from __future__ import annotations

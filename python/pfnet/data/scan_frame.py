@@ -29,11 +29,11 @@ __all__ = [
     "UP_AXES",
     "Pose",
     "ScanFrame",
+    "rim_frame",
     "scan_angle",
     "scan_frame",
     "scan_normalisation",
     "scan_pose",
-    "rim_frame",
     "to_y_up",
     "up_rotation",
 ]
@@ -207,7 +207,7 @@ def scan_frame(
     where a point's neighbours lie on one side only. The shape stays turned to its main axis
     (up to a quarter turn) and the hole lies on +x in 84–87 % of SweetHome3D's cuts, the
     horizontal direction of its centroid at a median cosine of 0.99 with +x (the third moment
-    and the sparser end: 62–73 %, 0.06–0.15; ``benchmarks/aligned_sign.py``).
+    and the sparser end: 62–73 %, 0.06–0.15; ``benchmarks/frame_hole.py``).
 
     ``heading`` (radians, not with ``aligned``): the scan frame turned back by that heading,
     the turn about the up axis that took the data set's frame to the partial's (a heading
