@@ -566,3 +566,67 @@ def _cpu_context():
     from pfnet.training import distributed
 
     return distributed.setup("cpu")
+
+
+def test_batchnorm_freeze_is_a_fraction_of_the_run() -> None:
+    from pfnet.training.schedule import batchnorm_frozen
+
+    steps = FAST.replace(steps=100, batchnorm_freeze=0.1)
+    assert [batchnorm_frozen(steps, 0, s) for s in (0, 9, 10, 99)] == [False, False, True, True]
+    epochs = FAST.replace(epochs=20, batchnorm_freeze=0.25)
+    assert [batchnorm_frozen(epochs, e, 999) for e in (0, 4, 5, 19)] == [False, False, True, True]
+    assert not any(batchnorm_frozen(FAST.replace(steps=10), 0, s) for s in range(10))  # off
+    for bad in (1.0, -0.1, "0.1"):
+        with pytest.raises(ConfigError, match=r"batchnorm_freeze must be a fraction of the run"):
+            FAST.replace(batchnorm_freeze=bad)
+
+
+def test_a_frozen_batchnorm_keeps_its_statistics_and_goes_on_learning(tiny_dataset: Path) -> None:
+    from pfnet.data.dataset import CompletionDataset
+    from pfnet.training.batches import CompletionCollate
+
+    dataset = CompletionDataset(tiny_dataset, "train", crop="viewpoint")
+    batch = CompletionCollate(True, centre_targets=True)([dataset[i] for i in range(4)])
+    config = FAST.replace(model="pfnet", width=0.125, n_points=512)
+    moved = {}
+    for frozen in (False, True):
+        step = TrainingStep(config, _cpu_context())
+        with torch.no_grad():  # statistics of this batch, as a run that froze them has
+            for layer in step.batchnorms:
+                layer.momentum = 1.0
+            step.generator(batch["partial"], batch["scale_indices"])
+            for layer in step.batchnorms:
+                layer.momentum = 0.1
+        step.batchnorm_frozen = frozen
+        start = {k: v.clone() for k, v in step.generator.state_dict().items()}
+        step.generator.eval()
+        step.generator.train()  # as validation leaves it: the step freezes the layers again
+        step(batch, alpha=0.01)
+        state = step.generator.state_dict()
+        moved[frozen] = {k for k in state if not torch.equal(state[k], start[k])}
+    stats = {k for k in moved[False] if k.endswith(("running_mean", "running_var"))}
+    assert stats and not stats & moved[True]  # the batch statistics no longer go in
+    learned = {k for k in moved[False] if k.endswith(("weight", "bias"))}
+    assert moved[True] == learned  # every weight still learns, BatchNorm's scale and shift too
+    assert any(k.startswith("encoder.") and k.endswith(".1.weight") for k in learned)
+
+
+def test_a_run_freezes_its_batchnorm_statistics_where_the_config_says(
+    tiny_dataset: Path, tmp_path: Path
+) -> None:
+    # Constant schedules, so that the first two steps of both runs are the same steps.
+    config = FAST.replace(
+        model="pfnet-vanilla", width=0.125, lr_milestones=(), alpha_fractions=((0.0, 0.1),)
+    )
+    train(config.replace(steps=2), tiny_dataset, tmp_path / "two", device="cpu")
+    train(
+        config.replace(steps=6, batchnorm_freeze=1 / 3), tiny_dataset, tmp_path / "six",
+        device="cpu",
+    )  # fmt: skip
+    two = read_checkpoint(tmp_path / "two" / "last.pt")["model"]
+    six = read_checkpoint(tmp_path / "six" / "last.pt")["model"]
+    stats = [k for k in two if k.endswith(("running_mean", "running_var"))]
+    assert stats
+    for key in stats:  # frozen after step 2 of 6: steps 3 to 6 left them as step 2 did
+        assert torch.equal(two[key], six[key]), key
+    assert not torch.equal(two["decoder.fc1.weight"], six["decoder.fc1.weight"])

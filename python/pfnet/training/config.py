@@ -81,6 +81,13 @@ class TrainConfig(ModelConfig):
             (0: off, the paper); the run's log then records the norm before clipping
             (``grad_norm``). Not in the paper: batches of a few shapes make single steps
             that undo many.
+        batchnorm_freeze: From this fraction of the run on (of its steps, or of its epochs
+            in a run sized in epochs), every BatchNorm layer of the generator normalises by
+            its running statistics, which stop changing, while its scale and shift go on
+            learning (0: off, the paper's batch statistics throughout). Not in the paper: in
+            a batch of four clouds each layer's statistics come from four shapes, so every
+            cloud's features change with the clouds it is batched with (the fit check,
+            docs/scan-protocol.md).
         adversarial_weight: λ_adv of Eq. (4); λ_com = 1 - λ_adv. Used by adversarial models.
         loss_scale: Factor on every Chamfer term of the loss (authors: 100·(d1+d2)/2 → 50).
         chamfer: ``l2`` (paper Eq. 1, the default): the loss's Chamfer terms are mean squared
@@ -143,6 +150,7 @@ class TrainConfig(ModelConfig):
         default=((0.0, 0.01), (0.15, 0.05), (0.4, 0.1))
     )
     grad_clip: float = 0.0
+    batchnorm_freeze: float = 0.0
     adversarial_weight: float = 0.05
     loss_scale: float = 50.0
     chamfer: str = "l2"
@@ -382,6 +390,12 @@ def _validate(c: TrainConfig) -> None:
         "grad_clip",
         c.grad_clip,
         "a number >= 0 (0: off)",
+    )
+    require(
+        is_number(c.batchnorm_freeze) and 0 <= c.batchnorm_freeze < 1,
+        "batchnorm_freeze",
+        c.batchnorm_freeze,
+        "a fraction of the run in [0, 1) (0: off)",
     )
     require(is_int(c.val_views) and c.val_views in VIEWS, "val_views", c.val_views, "1 or 5")
     require(isinstance(c.fresh_points, bool), "fresh_points", c.fresh_points, "true or false")

@@ -43,7 +43,7 @@ from pfnet.training.distributed import DistContext
 from pfnet.training.resume import check_resumable, data_identity, resumed_config, start_from
 from pfnet.training.runlog import epoch_line, plot_curves, write_log
 from pfnet.training.saving import CheckpointWriter, cpu_snapshot
-from pfnet.training.schedule import alpha_at, schedule_note, total_epochs
+from pfnet.training.schedule import alpha_at, batchnorm_frozen, schedule_note, total_epochs
 from pfnet.training.signals import StopRequest
 from pfnet.training.step import TrainingStep
 from pfnet.training.validation import score_generator, validation_batches
@@ -430,6 +430,7 @@ class Trainer:
             for batch in loader:
                 started = time.perf_counter()
                 alpha = alpha_at(c, epoch, self.global_step)
+                self.step.batchnorm_frozen = batchnorm_frozen(c, epoch, self.global_step)
                 losses = self.step(batch, alpha)  # float() of the losses waits for the GPU
                 self.step.end_step()
                 train_s += time.perf_counter() - started

@@ -63,6 +63,16 @@ def alpha_at(config: TrainConfig, epoch: int, step: int) -> float:
     return alpha
 
 
+def batchnorm_frozen(config: TrainConfig, epoch: int, step: int) -> bool:
+    """Whether the generator's BatchNorm layers use their frozen running statistics at
+    0-based ``epoch`` (epoch runs) or global ``step`` (step runs):
+    ``config.batchnorm_freeze`` of the run has passed."""
+    if config.batchnorm_freeze <= 0:
+        return False
+    fraction = step / config.steps if config.steps is not None else epoch / config.epochs
+    return fraction >= config.batchnorm_freeze
+
+
 def total_epochs(config: TrainConfig, steps_per_epoch: int) -> int:
     """How many epochs the run has (the last one may be partial in a run of steps)."""
     if config.steps is None:

@@ -22,6 +22,8 @@ from pfnet.training.losses import (
 )
 from pfnet.training.schedule import make_scheduler
 
+BATCHNORMS = (nn.BatchNorm1d, nn.BatchNorm2d, nn.BatchNorm3d)
+
 
 class TrainingStep:
     """The models, optimisers and schedulers of a run, and its per-batch update.
@@ -72,6 +74,10 @@ class TrainingStep:
         self.optimizer_d = self._adam(self.discriminator) if self.discriminator else None
         self.scheduler_d = make_scheduler(self.optimizer_d, config) if self.optimizer_d else None
         self.average = WeightAverage(self.generator, config.ema) if config.ema > 0 else None
+        self.batchnorms = [m for m in self.generator.modules() if isinstance(m, BATCHNORMS)]
+        #: Set by the loop from ``config.batchnorm_freeze``: the generator's BatchNorm
+        #: layers then normalise by their running statistics and stop updating them.
+        self.batchnorm_frozen = False
 
     @property
     def scored(self) -> nn.Module:
@@ -166,6 +172,9 @@ class TrainingStep:
             secondary_target = secondary_target.to(device, non_blocking=True)
             primary_target = primary_target.to(device, non_blocking=True)
 
+        if self.batchnorm_frozen:  # again every step: validation puts them back in training
+            for layer in self.batchnorms:
+                layer.eval()
         with self.autocast():
             completion = self.g_forward(partial, scale_indices)
         losses: dict[str, float] = {}
