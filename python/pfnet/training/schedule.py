@@ -51,11 +51,17 @@ def _epoch_milestones(config: TrainConfig) -> list[int]:
     return [max(1, round(f * config.epochs)) for f in config.lr_milestones]
 
 
+def run_fraction(config: TrainConfig, epoch: int, step: int) -> float:
+    """How much of the run has passed at 0-based ``epoch`` (epoch runs) or global ``step``
+    (step runs), as the schedules that are fractions of the run read it."""
+    return step / config.steps if config.steps is not None else epoch / config.epochs
+
+
 def alpha_at(config: TrainConfig, epoch: int, step: int) -> float:
     """α of Eq. (2) at 0-based ``epoch`` (epoch runs) or global ``step`` (step runs)."""
     if config.steps is None and config.schedule == "fixed":
         return alpha_for_epoch(epoch, config.alpha_schedule)
-    fraction = step / config.steps if config.steps is not None else epoch / config.epochs
+    fraction = run_fraction(config, epoch, step)
     alpha = float(config.alpha_fractions[0][1])
     for first, value in config.alpha_fractions:
         if fraction >= first:
@@ -67,10 +73,7 @@ def batchnorm_frozen(config: TrainConfig, epoch: int, step: int) -> bool:
     """Whether the generator's BatchNorm layers use their frozen running statistics at
     0-based ``epoch`` (epoch runs) or global ``step`` (step runs):
     ``config.batchnorm_freeze`` of the run has passed."""
-    if config.batchnorm_freeze <= 0:
-        return False
-    fraction = step / config.steps if config.steps is not None else epoch / config.epochs
-    return fraction >= config.batchnorm_freeze
+    return 0 < config.batchnorm_freeze <= run_fraction(config, epoch, step)
 
 
 def total_epochs(config: TrainConfig, steps_per_epoch: int) -> int:
