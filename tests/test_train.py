@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import signal
 from pathlib import Path
@@ -381,6 +382,39 @@ def test_the_learning_rate_schedule_per_step() -> None:
     assert schedule_note(preset_config("paper"), 340) is None  # ShapeNet-Part: 13,600 steps
 
 
+def test_the_cosine_decay_per_step_and_per_epoch() -> None:
+    from pfnet.training.schedule import make_scheduler, schedule_note
+
+    def rates(config, n: int) -> list[float]:
+        optimizer = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=config.lr)
+        scheduler = make_scheduler(optimizer, config)
+        out = []
+        for _ in range(n):
+            out.append(optimizer.param_groups[0]["lr"])
+            optimizer.step()
+            scheduler.step()
+        return out
+
+    # 4 warm-up steps, then a half cosine over the other 100 from 1 to 0.2 ** 2 = 0.04
+    config = FAST.replace(steps=104, lr=1.0, lr_gamma=0.2, warmup_steps=4, lr_decay="cosine")
+    lrs = rates(config, 104)
+    assert lrs[:4] == pytest.approx([0.25, 0.5, 0.75, 1.0])
+    naive = [0.04 + 0.96 * 0.5 * (1 + math.cos(math.pi * (s - 4) / 100)) for s in range(4, 104)]
+    assert lrs[4:] == pytest.approx(naive)
+    assert lrs[54] == pytest.approx(0.52) and all(a > b for a, b in zip(lrs[4:], lrs[5:]))
+    # no milestones: nothing to fall to, the rate stays
+    assert set(rates(config.replace(lr_milestones=()), 104)[4:]) == {1.0}
+    # an epoch run sized to the run: the same curve per epoch, no warm-up
+    epochs = preset_config("small").replace(epochs=10, lr=1.0, lr_decay="cosine")
+    per_epoch = rates(epochs, 10)
+    assert per_epoch == pytest.approx(
+        [0.04 + 0.96 * 0.5 * (1 + math.cos(math.pi * e / 10)) for e in range(10)]
+    )
+    note = schedule_note(epochs.replace(epochs=100), 12)
+    assert note is not None and "only 600 of the run's 1200" in note and "cosine" in note
+    assert schedule_note(config.replace(steps=10_000), 12) is None
+
+
 def test_schedule_config_errors() -> None:
     with pytest.raises(ConfigError, match=r"steps must be an integer in \[1, 100,000,000\]"):
         FAST.replace(steps=0)
@@ -394,6 +428,10 @@ def test_schedule_config_errors() -> None:
         FAST.replace(warmup_steps=-1)
     with pytest.raises(ConfigError, match="and at most the run's steps; got 1000000000000"):
         FAST.replace(steps=1, warmup_steps=10**12)  # the seventh audit: accepted
+    with pytest.raises(ConfigError, match="lr_decay must be one of step, cosine; got 'linear'"):
+        FAST.replace(lr_decay="linear")
+    with pytest.raises(ConfigError, match="cosine needs a run sized to its length"):
+        preset_config("paper").replace(lr_decay="cosine")
 
 
 def test_augmented_training_runs_and_needs_a_known_up_axis(

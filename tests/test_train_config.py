@@ -63,6 +63,18 @@ def test_command_line_overrides_the_file_which_overrides_the_preset(tmp_path: Pa
     assert (c.preset, c.model, c.missing_ratio, c.lr) == ("paper", "mlp", 0.5, 0.002)
 
 
+def test_schedule_and_lr_decay_options_reach_the_config() -> None:
+    # --schedule was parsed and then dropped before it was in build_config's names
+    c = build_config(_args("--preset", "small", "--schedule", "fixed"))
+    assert c.schedule == "fixed"
+    assert build_config(_args("--preset", "paper", "--schedule", "run")).schedule == "run"
+    c = build_config(_args("--preset", "small", "--steps", "100", "--lr-decay", "cosine"))
+    assert (c.steps, c.lr_decay) == (100, "cosine")
+    assert build_config(_args("--preset", "small")).lr_decay == "step"
+    with pytest.raises(ConfigError, match="cosine needs a run sized to its length"):
+        build_config(_args("--preset", "paper", "--lr-decay", "cosine"))
+
+
 @pytest.mark.parametrize(
     "key, value, match",
     [

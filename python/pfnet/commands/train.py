@@ -16,6 +16,7 @@ from pfnet.errors import ConfigError, DataError
 from pfnet.models.registry import MODEL_NAMES
 from pfnet.training.config import (
     CHAMFER_KINDS,
+    LR_DECAYS,
     PRECISIONS,
     PRESETS,
     SCHEDULES,
@@ -103,6 +104,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "preset: any --epochs gets a schedule sized to it)",
     )
     parser.add_argument(
+        "--lr-decay",
+        choices=LR_DECAYS,
+        dest="lr_decay",
+        help="how a schedule sized to the run (--steps, or --schedule run) lowers the learning "
+        "rate: step, x --lr-gamma at each milestone (default), or cosine, along a half cosine "
+        "to the same final rate at the end of the run",
+    )
+    parser.add_argument(
         "--frame",
         choices=FRAMES,
         help="frame of the network's input: scan, the partial's own centroid and radius (what "
@@ -172,6 +181,8 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         raise ConfigError("--epochs and --steps size the run two ways; give one of them")
     names = (
         "model",
+        "schedule",
+        "lr_decay",
         "crop",
         "chamfer",
         "frame",

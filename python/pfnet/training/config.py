@@ -29,6 +29,9 @@ CHAMFER_KINDS = ("l2", "l1")
 PRECISIONS = ("fp32", "bf16")
 # A run in epochs: the paper's fixed StepLR / α epochs, or milestones sized to the run.
 SCHEDULES = ("fixed", "run")
+# How a schedule sized to the run lowers the learning rate: ×lr_gamma at each milestone, or
+# along a half cosine to the same final rate.
+LR_DECAYS = ("step", "cosine")
 # Fields that may change when a run is resumed; every other field must match the checkpoint.
 # (How a run executes may change; what it learns from may not.)
 MAX_WORKERS = 64  # data-loader processes of one run
@@ -75,6 +78,12 @@ class TrainConfig(ModelConfig):
         lr_milestones: With ``steps``: fractions of the run at which the learning rate is
             multiplied by ``lr_gamma``.
         warmup_steps: With ``steps``: the learning rate rises linearly over this many steps.
+        lr_decay: How a schedule sized to the run (``steps``, or ``schedule = "run"``) lowers
+            the learning rate: ``step`` (×``lr_gamma`` at each of ``lr_milestones``, the
+            default) or ``cosine`` (along a half cosine from ``lr`` after the warm-up to the
+            step schedule's final rate, ``lr · lr_gamma ** len(lr_milestones)``, at the end
+            of the run; stepped per step in a run of steps, per epoch in a run of epochs). Not
+            in the paper.
         alpha_fractions: With ``steps``: ``((first_fraction, alpha), ...)``; the authors'
             epochs 30 and 80 of 200 are 0.15 and 0.4.
         grad_clip: Clip the generator's gradient to this global L2 norm before each step
@@ -146,6 +155,7 @@ class TrainConfig(ModelConfig):
     steps: int | None = None
     lr_milestones: tuple[float, ...] = (0.5, 0.75)
     warmup_steps: int = 0
+    lr_decay: str = "step"
     alpha_fractions: tuple[tuple[float, float], ...] = field(
         default=((0.0, 0.01), (0.15, 0.05), (0.4, 0.1))
     )
@@ -363,6 +373,14 @@ def _validate(c: TrainConfig) -> None:
         "warmup_steps",
         c.warmup_steps,
         "an integer >= 0 and at most the run's steps",
+    )
+    require(c.lr_decay in LR_DECAYS, "lr_decay", c.lr_decay, f"one of {', '.join(LR_DECAYS)}")
+    require(
+        c.lr_decay == "step" or c.steps is not None or c.schedule == "run",
+        "lr_decay",
+        c.lr_decay,
+        "step in a run of epochs with the paper's fixed StepLR (cosine needs a run sized to "
+        'its length: steps, or schedule = "run")',
     )
     require(
         _is_alpha_schedule(c.alpha_fractions, lambda f: is_number(f) and 0 <= f < 1),

@@ -26,24 +26,40 @@ def make_scheduler(
 
     The per-step schedule is a linear warm-up over ``warmup_steps`` from ``lr / warmup``,
     then ``lr`` multiplied by ``lr_gamma`` at each of ``lr_milestones`` (fractions of
-    ``steps``).
+    ``steps``), or with ``lr_decay = "cosine"`` lowered along a half cosine to the same
+    final rate. An epoch run with ``schedule = "run"`` does the same per epoch, without the
+    warm-up.
     """
-    if config.steps is None and config.schedule == "run":
+    if config.steps is None and config.schedule == "fixed":
+        return torch.optim.lr_scheduler.StepLR(
+            optimizer, step_size=config.lr_step, gamma=config.lr_gamma
+        )
+    if config.steps is None and config.lr_decay == "step":
         return torch.optim.lr_scheduler.MultiStepLR(
             optimizer, milestones=_epoch_milestones(config), gamma=config.lr_gamma
         )
     if config.steps is None:
-        return torch.optim.lr_scheduler.StepLR(
-            optimizer, step_size=config.lr_step, gamma=config.lr_gamma
+        return torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda epoch: cosine_factor(config, epoch / config.epochs)
         )
     milestones = [round(f * config.steps) for f in config.lr_milestones]
     warmup, gamma = config.warmup_steps, config.lr_gamma
 
     def factor(step: int) -> float:
         rise = min(1.0, (step + 1) / warmup) if warmup else 1.0
+        if config.lr_decay == "cosine":
+            return rise * cosine_factor(config, (step - warmup) / max(1, config.steps - warmup))
         return rise * gamma ** sum(step >= m for m in milestones)
 
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def cosine_factor(config: TrainConfig, progress: float) -> float:
+    """The cosine decay's factor on ``lr`` at ``progress`` (0 to 1) of its span: from 1 to
+    the step schedule's final factor, ``lr_gamma ** len(lr_milestones)``."""
+    final = config.lr_gamma ** len(config.lr_milestones)
+    progress = min(1.0, max(0.0, progress))
+    return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
 def _epoch_milestones(config: TrainConfig) -> list[int]:
@@ -89,11 +105,15 @@ def steps_at_full_lr(config: TrainConfig, steps_per_epoch: int) -> tuple[int, in
         total = config.epochs * steps_per_epoch
         if config.lr_gamma == 1.0 or (config.schedule == "run" and not config.lr_milestones):
             return total, total
+        if config.schedule == "run" and config.lr_decay == "cosine":
+            return total // 2, total  # above half the peak rate for the first half
         first = _epoch_milestones(config)[0] if config.schedule == "run" else config.lr_step
         return min(total, first * steps_per_epoch), total
     total = config.steps
     if config.lr_gamma == 1.0 or not config.lr_milestones:
         full = total
+    elif config.lr_decay == "cosine":
+        full = config.warmup_steps + (total - config.warmup_steps) // 2
     else:
         full = round(config.lr_milestones[0] * total)
     return max(0, full - config.warmup_steps), total
@@ -104,7 +124,9 @@ def schedule_note(config: TrainConfig, steps_per_epoch: int) -> str | None:
     full, total = steps_at_full_lr(config, steps_per_epoch)
     if full >= FEW_STEPS_AT_FULL_LR or full >= total:
         return None
-    if config.steps is not None:
+    if config.lr_decay == "cosine":
+        how = "the cosine decay below half the rate after half the run"
+    elif config.steps is not None:
         how = f"the first milestone at {config.lr_milestones[0]:g} of {total} steps"
     elif config.schedule == "run":
         how = f"the first milestone at {config.lr_milestones[0]:g} of {config.epochs} epochs"
