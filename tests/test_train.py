@@ -613,7 +613,11 @@ def test_batchnorm_freeze_is_a_fraction_of_the_run() -> None:
     assert [batchnorm_frozen(steps, 0, s) for s in (0, 9, 10, 99)] == [False, False, True, True]
     epochs = FAST.replace(epochs=20, batchnorm_freeze=0.25)
     assert [batchnorm_frozen(epochs, e, 999) for e in (0, 4, 5, 19)] == [False, False, True, True]
-    assert not any(batchnorm_frozen(FAST.replace(steps=10), 0, s) for s in range(10))  # off
+    off = FAST.replace(steps=10, batchnorm_freeze=0.0)
+    assert not any(batchnorm_frozen(off, 0, s) for s in range(10))
+    # the small preset freezes at 5 % of the run (with the clip), the paper's never
+    assert (preset_config("small").batchnorm_freeze, preset_config("small").grad_clip) == (0.05, 2)
+    assert (preset_config("paper").batchnorm_freeze, preset_config("paper").grad_clip) == (0, 0)
     for bad in (1.0, -0.1, "0.1"):
         with pytest.raises(ConfigError, match=r"batchnorm_freeze must be a fraction of the run"):
             FAST.replace(batchnorm_freeze=bad)
@@ -656,7 +660,9 @@ def test_a_run_freezes_its_batchnorm_statistics_where_the_config_says(
     config = FAST.replace(
         model="pfnet-vanilla", width=0.125, lr_milestones=(), alpha_fractions=((0.0, 0.1),)
     )
-    train(config.replace(steps=2), tiny_dataset, tmp_path / "two", device="cpu")
+    train(
+        config.replace(steps=2, batchnorm_freeze=0.0), tiny_dataset, tmp_path / "two", device="cpu"
+    )
     train(
         config.replace(steps=6, batchnorm_freeze=1 / 3), tiny_dataset, tmp_path / "six",
         device="cpu",

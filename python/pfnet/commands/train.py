@@ -42,11 +42,14 @@ OVERRIDES: dict[str, tuple[type, str]] = {
     "lr_step": (int, "StepLR period in epochs"),
     "lr_gamma": (float, "learning-rate factor at each StepLR period or --steps milestone"),
     "adversarial_weight": (float, "λ_adv of the joint loss (paper 0.05)"),
-    "grad_clip": (float, "clip the generator's gradient to this L2 norm (default 0: off)"),
+    "grad_clip": (
+        float,
+        "clip the generator's gradient to this L2 norm (paper preset 0: off, small 2)",
+    ),
     "batchnorm_freeze": (
         float,
         "from this fraction of the run on, the generator's BatchNorm layers use their "
-        "running statistics, frozen (default 0: off)",
+        "running statistics, frozen (paper preset 0: off, small 0.05)",
     ),
     "workers": (int, "data-loader worker processes, alive for the whole run"),
     "val_views": (

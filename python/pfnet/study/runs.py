@@ -62,6 +62,9 @@ STUDY_SCHEDULES: dict[str, dict[str, Any]] = {
         "schedule": "fixed",
         # the paper's val protocol, one cut per shape, as every published run of the study
         "val_views": 1,
+        # the paper's batch statistics and unclipped gradients, as the published runs
+        "batchnorm_freeze": 0.0,
+        "grad_clip": 0.0,
     },
 }
 
