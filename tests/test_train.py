@@ -609,8 +609,11 @@ def _cpu_context():
 def test_batchnorm_freeze_is_a_fraction_of_the_run() -> None:
     from pfnet.training.schedule import batchnorm_frozen
 
-    steps = FAST.replace(steps=100, batchnorm_freeze=0.1)
-    assert [batchnorm_frozen(steps, 0, s) for s in (0, 9, 10, 99)] == [False, False, True, True]
+    steps = FAST.replace(steps=1000, batchnorm_freeze=0.1)
+    assert [batchnorm_frozen(steps, 0, s) for s in (0, 99, 100, 999)] == [False, False, True, True]
+    # never before BATCHNORM_FREEZE_MIN_STEPS steps, however early the fraction comes
+    short = FAST.replace(steps=100, batchnorm_freeze=0.05)
+    assert [batchnorm_frozen(short, 0, s) for s in (5, 49, 50)] == [False, False, True]
     epochs = FAST.replace(epochs=20, batchnorm_freeze=0.25)
     assert [batchnorm_frozen(epochs, e, 999) for e in (0, 4, 5, 19)] == [False, False, True, True]
     off = FAST.replace(steps=10, batchnorm_freeze=0.0)
@@ -654,8 +657,11 @@ def test_a_frozen_batchnorm_keeps_its_statistics_and_goes_on_learning(tiny_datas
 
 
 def test_a_run_freezes_its_batchnorm_statistics_where_the_config_says(
-    tiny_dataset: Path, tmp_path: Path
+    tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from pfnet.training import schedule
+
+    monkeypatch.setattr(schedule, "BATCHNORM_FREEZE_MIN_STEPS", 0)  # a six-step run
     # Constant schedules, so that the first two steps of both runs are the same steps.
     config = FAST.replace(
         model="pfnet-vanilla", width=0.125, lr_milestones=(), alpha_fractions=((0.0, 0.1),)

@@ -85,10 +85,19 @@ def alpha_at(config: TrainConfig, epoch: int, step: int) -> float:
     return alpha
 
 
+#: No freeze before this many optimiser steps, whatever fraction the run asks for: at 5 % of a
+#: 48-step run (step 3) the running statistics (momentum 0.1) are still mostly their
+#: initial values, and the frozen network fits worse than an unfrozen one (tiny-data test).
+BATCHNORM_FREEZE_MIN_STEPS = 50
+
+
 def batchnorm_frozen(config: TrainConfig, epoch: int, step: int) -> bool:
     """Whether the generator's BatchNorm layers use their frozen running statistics at
     0-based ``epoch`` (epoch runs) or global ``step`` (step runs):
-    ``config.batchnorm_freeze`` of the run has passed."""
+    ``config.batchnorm_freeze`` of the run has passed, and at least
+    ``BATCHNORM_FREEZE_MIN_STEPS`` optimiser steps."""
+    if step < BATCHNORM_FREEZE_MIN_STEPS:
+        return False
     return 0 < config.batchnorm_freeze <= run_fraction(config, epoch, step)
 
 
