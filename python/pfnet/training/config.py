@@ -93,7 +93,9 @@ class TrainConfig(ModelConfig):
         batchnorm_freeze: From this fraction of the run on (of its steps, or of its epochs
             in a run sized in epochs), every BatchNorm layer of the generator normalises by
             its running statistics, which stop changing, while its scale and shift go on
-            learning (0: off, the paper's batch statistics throughout). Not in the paper: in
+            learning (0: off, the paper's batch statistics throughout); never before
+            optimiser step ``BATCHNORM_FREEZE_MIN_STEPS`` (50, :mod:`pfnet.training.schedule`),
+            when the running statistics still hold their first values. Not in the paper: in
             a batch of four clouds each layer's statistics come from four shapes, so every
             cloud's features change with the clouds it is batched with (the fit check,
             docs/scan-protocol.md).
