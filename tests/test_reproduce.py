@@ -568,6 +568,32 @@ def test_airplanes_ablation_section_is_its_published_record():
         assert block in section, block[:60]
 
 
+def test_airplanes_ablation_at_4000_steps_is_its_record():
+    """The twice-the-steps runs of the ablation's four models (4,000 steps) are the study's
+    2,000-step runs with only the length changed; the page quotes their record's figures."""
+    folder = AIRPLANES / "ablation-4000"
+    record = json.loads((folder / "runs.json").read_text())
+    assert set(record) == {"pfnet-vanilla", "mr-cmlp", "cmlp", "mlp"}
+    section = AIRPLANES_PAGE.read_text().split("### Twice the steps for the four")[1]
+    for model, entry in record.items():
+        run = folder / "runs" / f"{model}-25-4000steps-seed0"
+        half = AIRPLANES / "ablation" / "runs" / f"{model}-25-2000steps-seed0"
+        config, stored = (json.loads((d / "config.json").read_text()) for d in (run, half))
+        assert config.pop("steps") == 4000 and stored.pop("steps") == 2000
+        # keys added since the 2,000-step runs, at the values those runs trained with
+        assert config.pop("batchnorm_freeze") == 0.0 and config.pop("lr_decay") == "step"
+        assert config == stored, model
+        log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+        assert log[-1]["step"] == 4000
+        curve = [row["val_cd_l2"] for row in log[1:]]
+        assert min(curve) == entry["steps_4000"]["best_val_cd_l2"]
+        missing = json.loads((run / "eval-missing.json").read_text())["mean"]
+        assert missing == entry["steps_4000"]["test_missing"]
+        test = missing["pred_to_gt"] + missing["gt_to_pred"]
+        for figure in (entry["steps_4000"]["best_val_cd_l2"], test):
+            assert f"{figure:.3f}" in section, (model, figure)
+
+
 @pytest.mark.skipif(not (AIRPLANES / "results.json").is_file(), reason="no published airplanes")
 def test_airplanes_page_is_its_published_record():
     """docs/airplanes.md's section is generated from results/airplanes-table5, whose files
