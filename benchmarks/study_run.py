@@ -11,6 +11,12 @@ in OUT/<name>/ (interrupted: run it again and it resumes), scores the test split
 ``best.pt`` (``evaluate_run``) and writes the run's record to OUT/<name>/record.json. The
 files a study publishes of a run are config.json, log.jsonl, eval-missing.json and
 eval-whole.json.
+
+``--config KEYS.toml`` trains with those keys over the preset instead of the study's
+configuration (the name still sets the model, ratio, seed and length): a published run's
+``config.json`` made a TOML file extends that run to another length with everything else
+as it trained, keys added to pfnet since then included (``batchnorm_freeze = 0.0``,
+``lr_decay = "step"`` for runs from before those keys).
 """
 
 from __future__ import annotations
@@ -53,13 +59,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="small", choices=tuple(STUDY_SCHEDULES))
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
+    parser.add_argument(
+        "--config", type=Path, help="TOML file of keys over the preset (default: the study's)"
+    )
     args = parser.parse_args(argv)
     runs = [parse_run(name) for name in args.runs]  # every name checked before any training
     if args.threads:
         import torch
 
         torch.set_num_threads(args.threads)
-    base = study_config(args.preset)
+    if args.config:
+        from pfnet.training.config import load_config
+
+        base = load_config(args.config, preset=args.preset)
+    else:
+        base = study_config(args.preset)
     for run in runs:
         run_dir = args.out / run.name
         try:

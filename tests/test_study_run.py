@@ -10,6 +10,7 @@ pytest.importorskip("torch")  # the study's runs are training runs (the light in
 
 from scripts import load_script  # noqa: E402
 
+from pfnet.errors import ConfigError  # noqa: E402
 from pfnet.study.runs import StudyRun, run_config, study_config  # noqa: E402
 
 
@@ -51,3 +52,20 @@ def test_a_run_trains_with_the_study_config_scores_and_is_not_trained_twice(
     assert "best val CD-L2" in capsys.readouterr().out
     assert study_run.main(argv) == 0
     assert "mlp-25-4steps-seed0: already trained (4 steps)" in capsys.readouterr().out
+
+
+def test_a_run_trains_with_a_config_file_over_the_preset(study_run, tiny_dataset, tmp_path):
+    config = tmp_path / "published.toml"
+    config.write_text('lr = 0.0005\nbatchnorm_freeze = 0.0\nlr_decay = "step"\nseed = 5\n')
+    out = tmp_path / "runs"
+    argv = ["mlp-25-4steps-seed0", "--out", str(out), "--data", str(tiny_dataset)]
+    assert study_run.main([*argv, "--threads", "1", "--config", str(config)]) == 0
+    stored = json.loads((out / "mlp-25-4steps-seed0" / "config.json").read_text())
+    # the file's keys over the small preset; the name's model, ratio, seed and length
+    assert stored["lr"] == 0.0005 and stored["batchnorm_freeze"] == 0.0
+    assert stored["preset"] == "small" and stored["grad_clip"] == 2.0
+    assert (stored["model"], stored["missing_ratio"], stored["seed"]) == ("mlp", 0.25, 0)
+    assert stored["steps"] == 4
+    # the study's own configuration is another one: the run is not mixed with it
+    with pytest.raises(ConfigError, match="holds a run with another configuration"):
+        study_run.main(argv)
