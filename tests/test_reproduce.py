@@ -594,6 +594,39 @@ def test_airplanes_ablation_at_4000_steps_is_its_record():
             assert f"{figure:.3f}" in section, (model, figure)
 
 
+def test_airplanes_ablation_at_8000_steps_is_its_record():
+    """The four models again at 8,000 steps: the 4,000-step runs with only the length changed;
+    the record's gains are its own figures, and the page quotes both lengths."""
+    folder = AIRPLANES / "ablation-8000"
+    record = json.loads((folder / "runs.json").read_text())
+    shorter = json.loads((AIRPLANES / "ablation-4000" / "runs.json").read_text())
+    assert set(record) == {"pfnet-vanilla", "mr-cmlp", "cmlp", "mlp"}
+    section = AIRPLANES_PAGE.read_text().split("### 8,000 steps")[1].split("\n## ")[0]
+    for model, entry in record.items():
+        run = folder / "runs" / f"{model}-25-8000steps-seed0"
+        half = AIRPLANES / "ablation-4000" / "runs" / f"{model}-25-4000steps-seed0"
+        config, stored = (json.loads((d / "config.json").read_text()) for d in (run, half))
+        assert config.pop("steps") == 8000 and stored.pop("steps") == 4000
+        assert config == stored, model
+        log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+        assert log[-1]["step"] == 8000
+        best = min(row["val_cd_l2"] for row in log[1:])
+        assert best == entry["steps_8000"]["best_val_cd_l2"]
+        missing = json.loads((run / "eval-missing.json").read_text())["mean"]
+        assert missing == entry["steps_8000"]["test_missing"]
+        test = missing["pred_to_gt"] + missing["gt_to_pred"]
+        assert test == pytest.approx(entry["steps_8000"]["test_cd_l2"])
+        before = shorter[model]["steps_4000"]
+        assert entry["steps_4000"]["best_val_cd_l2"] == before["best_val_cd_l2"]
+        assert entry["steps_4000"]["test_cd_l2"] == before["test_cd_l2"]
+        gain = 1 - best / before["best_val_cd_l2"]
+        assert entry["val_gain_of_8000_over_4000"] == pytest.approx(gain)
+        for figure in (before["best_val_cd_l2"], best, before["test_cd_l2"], test):
+            assert f"{figure:.3f}" in section, (model, figure)
+        change = f"\u2212{100 * gain:.1f} %" if gain > 0 else f"+{-100 * gain:.1f} %"
+        assert change in section, (model, change)
+
+
 @pytest.mark.skipif(not (AIRPLANES / "results.json").is_file(), reason="no published airplanes")
 def test_airplanes_page_is_its_published_record():
     """docs/airplanes.md's section is generated from results/airplanes-table5, whose files

@@ -178,7 +178,7 @@ def test_run_folder_and_resume_errors(tiny_dataset: Path, tmp_path: Path) -> Non
     train(config, tiny_dataset, run, device="cpu", progress=False)
     with pytest.raises(ConfigError, match="already holds a run .*resume it to continue"):
         train(config, tiny_dataset, run, device="cpu")
-    with pytest.raises(ConfigError, match="cannot change lr when resuming: .* trained with 0.001"):
+    with pytest.raises(ConfigError, match="cannot change lr when resuming: .* trained with 0.0005"):
         train(config.replace(lr=0.5), tiny_dataset, run, device="cpu", resume=True)
     afile = tmp_path / "file"
     afile.write_text("x")
@@ -334,7 +334,7 @@ def test_a_run_sized_in_steps_follows_its_fractional_schedule(
     rows = _rows(tmp_path / "run")[1:]
     assert summary["epochs"] == 3 and [r["step"] for r in rows] == [5, 10, 13]
     # The lr after each epoch's last step: ×0.1 from step round(0.5 · 13) = 6 on.
-    assert [r["lr"] for r in rows] == pytest.approx([1e-3, 1e-4, 1e-4])
+    assert [r["lr"] for r in rows] == pytest.approx([5e-4, 5e-5, 5e-5])
     assert [r["alpha"] for r in rows] == [0.01, 0.1, 0.1]
     state = read_checkpoint(tmp_path / "run" / "last.pt")
     assert state["scheduler_g"]["last_epoch"] == 13
