@@ -568,6 +568,25 @@ def test_airplanes_ablation_section_is_its_published_record():
         assert block in section, block[:60]
 
 
+def _check_longer_run(
+    shorter: Path, longer: Path, model: str, steps: int, more: int, added: dict | None = None
+) -> tuple[float, dict]:
+    """Check that ``longer``'s run of ``model`` is ``shorter``'s with only the length changed
+    (and the ``added`` keys at those values) and ran to the end; give its best validation
+    CD-L2 and its test figures of the missing region."""
+    run = longer / "runs" / f"{model}-25-{more}steps-seed0"
+    half = shorter / "runs" / f"{model}-25-{steps}steps-seed0"
+    config, stored = (json.loads((d / "config.json").read_text()) for d in (run, half))
+    assert config.pop("steps") == more and stored.pop("steps") == steps
+    for key, value in (added or {}).items():
+        assert config.pop(key) == value, (model, key)
+    assert config == stored, model
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["step"] == more
+    best = min(row["val_cd_l2"] for row in log[1:])
+    return best, json.loads((run / "eval-missing.json").read_text())["mean"]
+
+
 def test_airplanes_ablation_at_4000_steps_is_its_record():
     """The twice-the-steps runs of the ablation's four models (4,000 steps) are the study's
     2,000-step runs with only the length changed; the page quotes their record's figures."""
@@ -576,21 +595,13 @@ def test_airplanes_ablation_at_4000_steps_is_its_record():
     assert set(record) == {"pfnet-vanilla", "mr-cmlp", "cmlp", "mlp"}
     section = AIRPLANES_PAGE.read_text().split("### Twice the steps for the four")[1]
     for model, entry in record.items():
-        run = folder / "runs" / f"{model}-25-4000steps-seed0"
-        half = AIRPLANES / "ablation" / "runs" / f"{model}-25-2000steps-seed0"
-        config, stored = (json.loads((d / "config.json").read_text()) for d in (run, half))
-        assert config.pop("steps") == 4000 and stored.pop("steps") == 2000
         # keys added since the 2,000-step runs, at the values those runs trained with
-        assert config.pop("batchnorm_freeze") == 0.0 and config.pop("lr_decay") == "step"
-        assert config == stored, model
-        log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-        assert log[-1]["step"] == 4000
-        curve = [row["val_cd_l2"] for row in log[1:]]
-        assert min(curve) == entry["steps_4000"]["best_val_cd_l2"]
-        missing = json.loads((run / "eval-missing.json").read_text())["mean"]
+        added = {"batchnorm_freeze": 0.0, "lr_decay": "step"}
+        best, missing = _check_longer_run(AIRPLANES / "ablation", folder, model, 2000, 4000, added)
+        assert best == entry["steps_4000"]["best_val_cd_l2"]
         assert missing == entry["steps_4000"]["test_missing"]
         test = missing["pred_to_gt"] + missing["gt_to_pred"]
-        for figure in (entry["steps_4000"]["best_val_cd_l2"], test):
+        for figure in (best, test):
             assert f"{figure:.3f}" in section, (model, figure)
 
 
@@ -603,16 +614,8 @@ def test_airplanes_ablation_at_8000_steps_is_its_record():
     assert set(record) == {"pfnet-vanilla", "mr-cmlp", "cmlp", "mlp"}
     section = AIRPLANES_PAGE.read_text().split("### 8,000 steps")[1].split("\n## ")[0]
     for model, entry in record.items():
-        run = folder / "runs" / f"{model}-25-8000steps-seed0"
-        half = AIRPLANES / "ablation-4000" / "runs" / f"{model}-25-4000steps-seed0"
-        config, stored = (json.loads((d / "config.json").read_text()) for d in (run, half))
-        assert config.pop("steps") == 8000 and stored.pop("steps") == 4000
-        assert config == stored, model
-        log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-        assert log[-1]["step"] == 8000
-        best = min(row["val_cd_l2"] for row in log[1:])
+        best, missing = _check_longer_run(AIRPLANES / "ablation-4000", folder, model, 4000, 8000)
         assert best == entry["steps_8000"]["best_val_cd_l2"]
-        missing = json.loads((run / "eval-missing.json").read_text())["mean"]
         assert missing == entry["steps_8000"]["test_missing"]
         test = missing["pred_to_gt"] + missing["gt_to_pred"]
         assert test == pytest.approx(entry["steps_8000"]["test_cd_l2"])
