@@ -170,6 +170,50 @@ def test_ctrl_c_through_the_cli_exits_130_and_resume_extends_the_run(
     assert [r["epoch"] for r in _rows(run)] == [0, 1, 2]
 
 
+def test_resume_with_more_epochs_follows_the_longer_runs_schedule(
+    tiny_dataset: Path, tmp_path: Path
+) -> None:
+    """A run sized to its length (the small preset) extended by ``--resume --epochs`` takes
+    the longer run's rates from where it stopped, not the shorter run's decayed one (the
+    demo times 2 epochs, then resumes for its budget: it trained at 1/25 of its rate)."""
+    from pfnet.training.schedule import lr_factor
+
+    config = FAST.replace(model="mlp", width=0.125, batch_size=8)  # 3 steps an epoch
+    short, longer = config.replace(epochs=2), config.replace(epochs=8)
+    train(short, tiny_dataset, tmp_path / "short", device="cpu", progress=False)
+    assert [r["lr"] for r in _rows(tmp_path / "short")[1:]] == pytest.approx([5e-4, 1e-4])
+    train(longer, tiny_dataset, tmp_path / "short", device="cpu", progress=False, resume=True)
+    train(longer, tiny_dataset, tmp_path / "whole", device="cpu", progress=False)
+    extended, whole = (_rows(tmp_path / run)[1:] for run in ("short", "whole"))
+    assert [r["lr"] for r in extended[2:]] == pytest.approx([r["lr"] for r in whole[2:]])
+    assert whole[2]["lr"] == pytest.approx(5e-4 * lr_factor(longer, 2))
+    assert [r["lr"] / 5e-4 for r in whole] == pytest.approx([1, 1, 1, 1, 0.2, 0.2, 0.04, 0.04])
+
+
+def test_scheduler_states_of_before_resume_on_the_runs_schedule() -> None:
+    """Checkpoints written with StepLR and MultiStepLR states resume on the closed form."""
+    from pfnet.training.schedule import lr_factor, make_scheduler, resume_scheduler
+
+    config = FAST.replace(epochs=10, lr=1.0)  # drops at epochs 5 and 8 (0.5, 0.75 of 10)
+    old = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+    multistep = torch.optim.lr_scheduler.MultiStepLR(old, milestones=[5, 8], gamma=0.2)
+    for _ in range(6):
+        old.step()
+        multistep.step()
+    optimizer = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+    optimizer.load_state_dict(old.state_dict())
+    scheduler = make_scheduler(optimizer, config)
+    resume_scheduler(scheduler, multistep.state_dict())
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(0.2) == lr_factor(config, 6)
+    rates = []
+    for _ in range(4):
+        optimizer.step()
+        scheduler.step()
+        rates.append(optimizer.param_groups[0]["lr"])
+    assert rates == pytest.approx([0.2, 0.04, 0.04, 0.04])
+    assert scheduler.get_last_lr() == pytest.approx([0.04])
+
+
 def test_run_folder_and_resume_errors(tiny_dataset: Path, tmp_path: Path) -> None:
     config = FAST.replace(model="mlp", epochs=1, width=0.125)
     run = tmp_path / "run"

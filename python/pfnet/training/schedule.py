@@ -22,36 +22,56 @@ FEW_STEPS_AT_FULL_LR = 2000  # below this, a run is told that its learning rate 
 def make_scheduler(
     optimizer: torch.optim.Optimizer, config: TrainConfig
 ) -> torch.optim.lr_scheduler.LRScheduler:
-    """StepLR stepped per epoch (epoch runs), or a per-step schedule (``config.steps``).
+    """The run's learning-rate schedule, stepped per epoch (epoch runs) or per optimiser step
+    (``config.steps``): ``lr`` times :func:`lr_factor`, in closed form, so that a resumed run
+    can be put anywhere on it (:func:`resume_scheduler`)."""
 
-    The per-step schedule is a linear warm-up over ``warmup_steps`` from ``lr / warmup``,
-    then ``lr`` multiplied by ``lr_gamma`` at each of ``lr_milestones`` (fractions of
-    ``steps``), or with ``lr_decay = "cosine"`` lowered along a half cosine to the same
-    final rate. An epoch run with ``schedule = "run"`` does the same per epoch, without the
-    warm-up.
-    """
-    if config.steps is None and config.schedule == "fixed":
-        return torch.optim.lr_scheduler.StepLR(
-            optimizer, step_size=config.lr_step, gamma=config.lr_gamma
-        )
-    if config.steps is None and config.lr_decay == "step":
-        return torch.optim.lr_scheduler.MultiStepLR(
-            optimizer, milestones=_epoch_milestones(config), gamma=config.lr_gamma
-        )
-    if config.steps is None:
-        return torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda epoch: cosine_factor(config, epoch / config.epochs)
-        )
-    milestones = [round(f * config.steps) for f in config.lr_milestones]
-    warmup, gamma = config.warmup_steps, config.lr_gamma
-
-    def factor(step: int) -> float:
-        rise = min(1.0, (step + 1) / warmup) if warmup else 1.0
-        if config.lr_decay == "cosine":
-            return rise * cosine_factor(config, (step - warmup) / max(1, config.steps - warmup))
-        return rise * gamma ** sum(step >= m for m in milestones)
+    def factor(index: int) -> float:  # a function, not a callable object: not in state dicts
+        return lr_factor(config, index)
 
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def lr_factor(config: TrainConfig, index: int) -> float:
+    """The factor on ``lr`` after ``index`` scheduler steps (epochs, or optimiser steps in a
+    run of ``config.steps``).
+
+    The paper's epoch schedule (``schedule = "fixed"``) multiplies by ``lr_gamma`` every
+    ``lr_step`` epochs, as StepLR does. A run sized to its length (``schedule = "run"``, or
+    any run of steps) multiplies by ``lr_gamma`` at each of ``lr_milestones`` (fractions of
+    the run), or with ``lr_decay = "cosine"`` lowers it along a half cosine to the same
+    final rate; a run of steps first warms up linearly over ``warmup_steps`` from
+    ``lr / warmup``.
+    """
+    if config.steps is None and config.schedule == "fixed":
+        return config.lr_gamma ** (index // config.lr_step)
+    if config.steps is None and config.lr_decay == "step":
+        return config.lr_gamma ** sum(index >= m for m in _epoch_milestones(config))
+    if config.steps is None:
+        return cosine_factor(config, index / config.epochs)
+    warmup = config.warmup_steps
+    rise = min(1.0, (index + 1) / warmup) if warmup else 1.0
+    if config.lr_decay == "cosine":
+        return rise * cosine_factor(config, (index - warmup) / max(1, config.steps - warmup))
+    milestones = [round(f * config.steps) for f in config.lr_milestones]
+    return rise * config.lr_gamma ** sum(index >= m for m in milestones)
+
+
+def resume_scheduler(scheduler: torch.optim.lr_scheduler.LambdaLR, stored: dict) -> None:
+    """Put ``scheduler`` and its optimiser's rate where the stored scheduler state stopped,
+    on ``scheduler``'s own schedule.
+
+    Only the stored count is read: a run resumed with more epochs (``--resume --epochs``)
+    follows the schedule sized to its new length from where it stopped, not the old
+    length's (whose decayed rate the optimiser's stored state still holds), and states of
+    the schedulers used before (StepLR, MultiStepLR) resume the same way.
+    """
+    index = int(stored["last_epoch"])
+    scheduler.last_epoch = index
+    rates = [base * fn(index) for base, fn in zip(scheduler.base_lrs, scheduler.lr_lambdas)]
+    for group, rate in zip(scheduler.optimizer.param_groups, rates):
+        group["lr"] = rate
+    scheduler._last_lr = rates
 
 
 def cosine_factor(config: TrainConfig, progress: float) -> float:

@@ -20,7 +20,7 @@ from pfnet.training.losses import (
     generator_adversarial_loss,
     joint_loss,
 )
-from pfnet.training.schedule import make_scheduler
+from pfnet.training.schedule import make_scheduler, resume_scheduler
 
 BATCHNORMS = (nn.BatchNorm1d, nn.BatchNorm2d, nn.BatchNorm3d)
 
@@ -143,13 +143,13 @@ class TrainingStep:
         """Restore what :meth:`state_dict` returned."""
         self.generator.load_state_dict(state["model"])
         self.optimizer_g.load_state_dict(state["optimizer_g"])
-        self.scheduler_g.load_state_dict(state["scheduler_g"])
+        resume_scheduler(self.scheduler_g, state["scheduler_g"])
         if self.average is not None:
             self.average.load_state_dict(state["average"])
         if self.discriminator is not None:
             self.discriminator.load_state_dict(state["discriminator"])
             self.optimizer_d.load_state_dict(state["optimizer_d"])
-            self.scheduler_d.load_state_dict(state["scheduler_d"])
+            resume_scheduler(self.scheduler_d, state["scheduler_d"])
 
     def __call__(self, batch: dict[str, Any], alpha: float) -> dict[str, float]:
         """One discriminator step (adversarial models) then one generator step.
