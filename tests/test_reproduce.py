@@ -605,29 +605,45 @@ def test_airplanes_ablation_at_4000_steps_is_its_record():
             assert f"{figure:.3f}" in section, (model, figure)
 
 
-def test_airplanes_ablation_at_8000_steps_is_its_record():
-    """The four models again at 8,000 steps: the 4,000-step runs with only the length changed;
-    the record's gains are its own figures, and the page quotes both lengths."""
-    folder = AIRPLANES / "ablation-8000"
+def _check_twice_the_steps(shorter: str, longer: str, steps: int, heading: str) -> set[str]:
+    """Check a record of runs at twice ``steps`` (``longer``) against the record of the runs
+    at ``steps`` (``shorter``): each run is its shorter run with only the length changed, the
+    record's gains are its own figures, and the page's section ``heading`` quotes both
+    lengths. Give the record's models."""
+    more = 2 * steps
+    folder = AIRPLANES / longer
     record = json.loads((folder / "runs.json").read_text())
-    shorter = json.loads((AIRPLANES / "ablation-4000" / "runs.json").read_text())
-    assert set(record) == {"pfnet-vanilla", "mr-cmlp", "cmlp", "mlp"}
-    section = AIRPLANES_PAGE.read_text().split("### 8,000 steps")[1].split("\n## ")[0]
+    before_record = json.loads((AIRPLANES / shorter / "runs.json").read_text())
+    section = AIRPLANES_PAGE.read_text().split(heading)[1].split("\n## ")[0]
     for model, entry in record.items():
-        best, missing = _check_longer_run(AIRPLANES / "ablation-4000", folder, model, 4000, 8000)
-        assert best == entry["steps_8000"]["best_val_cd_l2"]
-        assert missing == entry["steps_8000"]["test_missing"]
+        best, missing = _check_longer_run(AIRPLANES / shorter, folder, model, steps, more)
+        assert best == entry[f"steps_{more}"]["best_val_cd_l2"]
+        assert missing == entry[f"steps_{more}"]["test_missing"]
         test = missing["pred_to_gt"] + missing["gt_to_pred"]
-        assert test == pytest.approx(entry["steps_8000"]["test_cd_l2"])
-        before = shorter[model]["steps_4000"]
-        assert entry["steps_4000"]["best_val_cd_l2"] == before["best_val_cd_l2"]
-        assert entry["steps_4000"]["test_cd_l2"] == before["test_cd_l2"]
+        assert test == pytest.approx(entry[f"steps_{more}"]["test_cd_l2"])
+        before = before_record[model][f"steps_{steps}"]
+        assert entry[f"steps_{steps}"]["best_val_cd_l2"] == before["best_val_cd_l2"]
+        assert entry[f"steps_{steps}"]["test_cd_l2"] == pytest.approx(before["test_cd_l2"])
         gain = 1 - best / before["best_val_cd_l2"]
-        assert entry["val_gain_of_8000_over_4000"] == pytest.approx(gain)
+        assert entry[f"val_gain_of_{more}_over_{steps}"] == pytest.approx(gain)
         for figure in (before["best_val_cd_l2"], best, before["test_cd_l2"], test):
             assert f"{figure:.3f}" in section, (model, figure)
         change = f"\u2212{100 * gain:.1f} %" if gain > 0 else f"+{-100 * gain:.1f} %"
         assert change in section, (model, change)
+    return set(record)
+
+
+def test_airplanes_ablation_at_8000_steps_is_its_record():
+    """The four models again at 8,000 steps: the 4,000-step runs with only the length changed;
+    the record's gains are its own figures, and the page quotes both lengths."""
+    models = _check_twice_the_steps("ablation-4000", "ablation-8000", 4000, "### 8,000 steps")
+    assert models == {"pfnet-vanilla", "mr-cmlp", "cmlp", "mlp"}
+
+
+def test_airplanes_ablation_at_16000_steps_is_its_record():
+    """CMLP and MLP, still improving at 8,000 steps, at 16,000, checked the same way."""
+    models = _check_twice_the_steps("ablation-8000", "ablation-16000", 8000, "### 16,000 steps")
+    assert models == {"cmlp", "mlp"}
 
 
 @pytest.mark.skipif(not (AIRPLANES / "results.json").is_file(), reason="no published airplanes")
